@@ -1,0 +1,39 @@
+"""The contracts between the baseline pipeline and its pluggable components (DESIGN.md).
+
+A *feature provider* supplies the per-anchor features the decoder MLPs read, and declares the
+per-anchor attributes it wants entropy coded (:class:`CodedAttribute`). An *entropy model*
+builds its output head from that list, so swapping the provider swaps the head with no special
+cases. A *refiner* (optional) turns per-anchor extras and the view into additive corrections of
+the decoded Gaussians.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class CodedAttribute:
+    """One per-anchor attribute that the entropy model codes.
+
+    Attributes:
+        name: attribute name, also the bitstream section name (``feat``, ``scaling``, ...).
+        dims: number of values per anchor.
+        q0: base quantization step.
+        masked: True when each value is gated by a Gaussian mask (offsets: K x 3 values, one
+            mask per Gaussian, so a mask covers ``dims // n_masks`` consecutive values). Masked
+            values whose Gaussian is off are neither coded nor counted.
+    """
+
+    name: str
+    dims: int
+    q0: float
+    masked: bool = False
+
+
+# The baseline's coded attributes for K = 10 offsets and a 50-dim feature (SPEC.md section 3).
+def scaffold_coded_attributes(feat_dim: int = 50, n_offsets: int = 10) -> tuple[CodedAttribute, ...]:
+    return (
+        CodedAttribute("feat", feat_dim, 1.0),
+        CodedAttribute("scaling", 6, 0.001),
+        CodedAttribute("offsets", 3 * n_offsets, 0.2, masked=True),
+    )
