@@ -1,1 +1,3 @@
-
+"""Training: trainer, losses, phase and densification hooks."""
+from baseline.scaffold import densify  # noqa: F401  (registers the scaffold_densify hooks)
+from baseline.train import phases  # noqa: F401  (registers the hac_phases hooks)

@@ -1,0 +1,172 @@
+"""The ``pgs`` command line."""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+
+def _config_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--patch", action="append", default=[], metavar="NAME",
+                   help="config patch (patches/NAME.toml or a path); repeat to apply in order")
+    p.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
+                   help="override one config value (after the patches)")
+    p.add_argument("-r", "--resolution", type=int, default=None,
+                   help="downscale factor (1, 2, 4, 8); default: original size capped at 1600 px")
+    p.add_argument("--images", default=None, help="image folder (e.g. images_8)")
+    p.add_argument("--iterations", type=int, default=None, help="shortcut for --set train.iterations=N")
+
+
+def _build_cfg(args):
+    from baseline.config import build_config
+
+    sets = list(args.set)
+    if getattr(args, "resolution", None) is not None:
+        sets.append(f"data.resolution={args.resolution}")
+    if getattr(args, "images", None):
+        sets.append(f'data.images="{args.images}"')
+    if getattr(args, "iterations", None):
+        sets.append(f"train.iterations={args.iterations}")
+    return build_config(args.patch, sets)
+
+
+def cmd_config(args) -> int:
+    from baseline.config import to_toml
+
+    print(to_toml(_build_cfg(args)))
+    return 0
+
+
+def cmd_make_scene(args) -> int:
+    from baseline.data.synthetic import make_scene
+
+    make_scene(args.out, n_views=args.views, width=args.width, height=args.height, seed=args.seed,
+               texture_detail=args.detail)
+    print(f"wrote synthetic scene to {args.out}")
+    return 0
+
+
+def cmd_train(args) -> int:
+    from baseline.run import train_run
+
+    cfg = _build_cfg(args)
+    res = train_run(args.scene, args.out, cfg, resume=args.resume)
+    _print_results(res)
+    return 0
+
+
+def _print_results(res: dict) -> None:
+    t = res.get("test", {})
+    print(f"iterations {res['iterations']}  train {res['train_time_s']:.1f} s "
+          f"({res['s_per_it']:.3f} s/it, {res['threads']} threads)  anchors {res['anchors']}")
+    if t:
+        lp = "unavailable" if t.get("lpips") is None else f"{t['lpips']:.4f}"
+        print(f"test: PSNR {t['psnr']:.3f} dB  SSIM {t['ssim']:.4f}  LPIPS {lp}  "
+              f"FPS {t['fps']:.1f}  Gaussians/view {t['gaussians_mean']:.0f}")
+
+
+def cmd_eval(args) -> int:
+    from baseline.eval.metrics import load_lpips
+    from baseline.run import evaluate_trainer, load_run, write_json_atomic
+
+    trainer, scene = load_run(args.run)
+    lpips_fn = load_lpips(args.lpips_weights) if args.lpips_weights else None
+    res = evaluate_trainer(trainer, scene, render_dir=Path(args.run) / "renders" / "test",
+                           lpips_fn=lpips_fn)
+    print(json.dumps(res, indent=2))
+    path = Path(args.run) / "results.json"
+    full = json.loads(path.read_text()) if path.exists() else {}
+    full["test"] = res
+    write_json_atomic(path, full)
+    return 0
+
+
+def cmd_bench(args) -> int:
+    if args.what == "raster":
+        from baseline.render.bench import format_raster_bench, run_raster_bench
+
+        rows = run_raster_bench(threads=args.threads)
+        print(format_raster_bench(rows))
+    elif args.what == "codec":
+        from baseline.codec.bench import format_codec_bench, run_codec_bench
+
+        rows = run_codec_bench(n_anchors=args.anchors)
+        print(format_codec_bench(rows))
+    return 0
+
+
+def cmd_demo(args) -> int:
+    """The main job on the embedded default scene (until `compare` lands: train + evaluate)."""
+    from baseline.config import build_config
+    from baseline.data.synthetic import make_scene
+    from baseline.run import train_run
+
+    out = Path(args.out)
+    scene = out / "scene"
+    if not (scene / "sparse").exists():
+        make_scene(scene)
+        print(f"wrote the default synthetic scene to {scene}")
+    cfg = build_config(["demo"] + args.patch, args.set)
+    t0 = time.perf_counter()
+    res = train_run(str(scene), out / "baseline", cfg, resume=True)
+    _print_results(res)
+    print(f"demo wall time {time.perf_counter() - t0:.1f} s; run folder {out / 'baseline'}")
+    return 0
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(prog="pgs", description="anchor-based 3DGS compression toolkit")
+    sub = ap.add_subparsers(dest="cmd", required=True)
+
+    p = sub.add_parser("config", help="print the merged config")
+    _config_args(p)
+    p.set_defaults(fn=cmd_config)
+
+    p = sub.add_parser("make-scene", help="write the procedural synthetic scene (COLMAP format)")
+    p.add_argument("out")
+    p.add_argument("--views", type=int, default=40)
+    p.add_argument("--width", type=int, default=160)
+    p.add_argument("--height", type=int, default=120)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--detail", type=float, default=1.0, help="texture detail; 0 = flat colours")
+    p.set_defaults(fn=cmd_make_scene)
+
+    p = sub.add_parser("train", help="train a model on a scene")
+    p.add_argument("scene")
+    p.add_argument("--out", required=True)
+    p.add_argument("--resume", action="store_true", help="continue from the run's checkpoint")
+    _config_args(p)
+    p.set_defaults(fn=cmd_train)
+
+    p = sub.add_parser("eval", help="evaluate a run on its test views")
+    p.add_argument("run")
+    p.add_argument("--lpips-weights", default=None, help="LPIPS weights file (else unavailable)")
+    p.set_defaults(fn=cmd_eval)
+
+    p = sub.add_parser("bench", help="benchmarks, printed as ratios to a reference in one process")
+    p.add_argument("what", choices=["raster", "codec"])
+    p.add_argument("--threads", type=int, default=None)
+    p.add_argument("--anchors", type=int, default=500_000)
+    p.set_defaults(fn=cmd_bench)
+
+    p = sub.add_parser("demo", help="the main job on the embedded default scene")
+    p.add_argument("--out", default="runs/demo")
+    p.add_argument("--patch", action="append", default=[])
+    p.add_argument("--set", action="append", default=[])
+    p.set_defaults(fn=cmd_demo)
+
+    args = ap.parse_args(argv)
+    from baseline import registry
+
+    try:
+        registry.ensure_loaded()
+        return args.fn(args)
+    except (ValueError, FileNotFoundError, KeyError) as e:
+        print(f"pgs {args.cmd}: error: {e}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

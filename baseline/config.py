@@ -1,0 +1,352 @@
+"""Typed configuration: paper defaults (SPEC.md), TOML patches applied in order, ``--set`` overrides.
+
+The config is a tree of dataclasses. Baseline sections are fixed fields of :class:`Config`;
+plugins contribute extra sections by registering a dataclass under registry kind
+``config_section`` (e.g. ``predict``), which then appear as ``cfg.ext["predict"]`` and may be set
+from patches as ``[predict]``.
+
+Iteration milestones are written at the paper's scale (30k iterations, ``train.schedule_base``)
+and converted with :meth:`TrainConfig.at`, so changing ``train.iterations`` (the ``cpu`` preset
+does) scales every milestone proportionally.
+"""
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import tomllib
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+PATCH_DIR = Path(__file__).resolve().parent.parent / "patches"
+
+
+class ConfigError(ValueError):
+    """A bad config key, value or patch; the message names the key and the source."""
+
+
+@dataclass
+class DataConfig:
+    resolution: int = -1          # -1: original size capped at 1600 px wide; N: divide by N
+    images: str = ""              # image folder override (e.g. "images_8"); "" = automatic
+    eval: bool = True             # hold out every `test_every`-th view for testing
+    test_every: int = 8
+    background: str = "black"     # "black" or "white"
+    random_init_points: int = 10000
+    random_init_extent: float = 1.3
+    cache_dir: str = ""           # "" = beside the scene (or ~/.cache/pgs when read-only)
+
+
+@dataclass
+class ModelConfig:
+    feature_provider: str = "explicit"   # registry kind feature_provider
+    refiner: str = "none"                # registry kind refiner ("none" = no refiner)
+    feat_dim: int = 50
+    n_offsets: int = 10
+    hidden: int = 50
+    voxel_size: float = 0.01             # <= 0: automatic (SPEC.md section 2)
+    update_init_factor: int = 16         # NeRF-Synthetic: 4
+    update_hierarchy_factor: int = 4
+    update_depth: int = 3
+    use_distance: bool = True            # HAC: view direction + distance (54 inputs)
+
+
+@dataclass
+class DensifyConfig:
+    stat_from: int = 500                 # accumulate statistics for stat_from < it < update_until
+    update_from: int = 1500
+    update_until: int = 15000
+    update_interval: int = 100
+    skip_from: int = 3000                # HAC skips adjustments in [skip_from, skip_until)
+    skip_until: int = 4000
+    grad_threshold: float = 0.0002
+    success_threshold: float = 0.8       # grow: count > interval*st*0.5; prune: count > interval*st
+    min_opacity: float = 0.005
+    # Reference quirk: when level 0 adds no anchor, levels 1-2 are skipped. False = always try
+    # every level (our default, see baseline/scaffold/densify.py).
+    reference_level_skip: bool = False
+    # Reference quirk: log-scaling[:, 3:] clamped to <= 0.05 at each adjustment (< 0: off).
+    prune_clamp_log_scaling: float = 0.05
+
+
+@dataclass
+class LRConfig:
+    offset_init: float = 0.01            # x scene extent
+    offset_final: float = 0.0001
+    feature: float = 0.0075
+    scaling: float = 0.007
+    mlp_opacity_init: float = 0.002
+    mlp_opacity_final: float = 0.00002
+    mlp_cov: float = 0.004
+    mlp_color_init: float = 0.008
+    mlp_color_final: float = 0.00005
+    mask_init: float = 0.01              # x scene extent
+    mask_final: float = 0.0001
+    grid_init: float = 0.005
+    grid_final: float = 0.00001
+    context_init: float = 0.005
+    context_final: float = 0.00001
+
+
+@dataclass
+class TrainConfig:
+    iterations: int = 30000
+    schedule_base: int = 30000           # milestones below/elsewhere are given at this scale
+    seed: int = 0
+    lambda_dssim: float = 0.2
+    lambda_volume: float = 0.01
+    threads: int = 0                     # 0 = all cores
+    rasterizer: str = "auto"             # auto | cpu | gsplat | reference
+    hooks: list[str] = field(default_factory=lambda: ["scaffold_densify", "hac_phases"])
+    checkpoint_every: int = 5000         # paper-scale iterations; 0 = only at the end
+    log_every: int = 10
+    save_test_renders: bool = True
+
+    def at(self, paper_iteration: int) -> int:
+        """Milestone ``paper_iteration`` (given for ``schedule_base`` iterations) scaled to this run."""
+        return int(round(paper_iteration * self.iterations / self.schedule_base))
+
+
+@dataclass
+class GridConfig:
+    resolutions_3d: list[int] = field(default_factory=lambda: [18, 24, 33, 44, 59, 80, 108, 148,
+                                                               201, 275, 376, 514])
+    log2_table_3d: int = 13
+    resolutions_2d: list[int] = field(default_factory=lambda: [130, 258, 514, 1026])
+    log2_table_2d: int = 15
+    n_features: int = 4
+    auto: bool = False                   # size tables and top levels from the anchor count
+
+
+@dataclass
+class EntropyConfig:
+    model: str = "hac"                   # registry kind entropy_model: hac | factorized
+    lmbda: float = 0.004                 # 0.004 low rate, 0.0005 high rate
+    noise_from: int = 3000
+    context_from: int = 10000
+    mask_lambda: float = 0.0005
+    mask_threshold: float = 0.01
+    rate_sample: float = 0.05
+    context_hidden: int = 100
+    position_bits: int = 16
+    grid: GridConfig = field(default_factory=GridConfig)
+
+
+@dataclass
+class CodecConfig:
+    weight_dtype: str = "float32"        # float32 | float16
+
+
+@dataclass
+class Config:
+    data: DataConfig = field(default_factory=DataConfig)
+    model: ModelConfig = field(default_factory=ModelConfig)
+    densify: DensifyConfig = field(default_factory=DensifyConfig)
+    lr: LRConfig = field(default_factory=LRConfig)
+    train: TrainConfig = field(default_factory=TrainConfig)
+    entropy: EntropyConfig = field(default_factory=EntropyConfig)
+    codec: CodecConfig = field(default_factory=CodecConfig)
+    patches: list[str] = field(default_factory=list)   # names of the applied patches, in order
+    ext: dict[str, Any] = field(default_factory=dict)  # plugin sections
+
+    def section(self, name: str) -> Any:
+        if name in self.ext:
+            return self.ext[name]
+        return getattr(self, name)
+
+
+def default_config() -> Config:
+    """Paper defaults, with every registered plugin section at its defaults."""
+    from baseline import registry
+
+    cfg = Config()
+    registry.ensure_loaded()
+    for name in registry.names("config_section"):
+        cfg.ext[name] = registry.get("config_section", name)()
+    return cfg
+
+
+# ----------------------------------------------------------------------------------- merging
+def _check_value(value: Any, tp: Any, key: str, source: str) -> Any:
+    origin = typing.get_origin(tp)
+    where = f"'{key}' in {source}"
+    if origin in (list, tuple):
+        (inner,) = typing.get_args(tp)[:1] or (Any,)
+        if not isinstance(value, (list, tuple)):
+            raise ConfigError(f"{where}: expected a list, got {type(value).__name__} {value!r}")
+        return [_check_value(v, inner, f"{key}[{i}]", source) for i, v in enumerate(value)]
+    if tp is bool:
+        if not isinstance(value, bool):
+            raise ConfigError(f"{where}: expected true/false, got {type(value).__name__} {value!r}")
+        return value
+    if tp is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ConfigError(f"{where}: expected an integer, got {type(value).__name__} {value!r}")
+        return value
+    if tp is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ConfigError(f"{where}: expected a number, got {type(value).__name__} {value!r}")
+        return float(value)
+    if tp is str:
+        if not isinstance(value, str):
+            raise ConfigError(f"{where}: expected a string, got {type(value).__name__} {value!r}")
+        return value
+    return value
+
+
+def _merge_into(obj: Any, overlay: dict, prefix: str, source: str) -> None:
+    hints = typing.get_type_hints(type(obj))
+    names = {f.name for f in dataclasses.fields(obj)}
+    for k, v in overlay.items():
+        key = f"{prefix}{k}"
+        if k not in names or k in ("patches", "ext"):
+            raise ConfigError(f"unknown config key '{key}' in {source}; "
+                              f"known keys here: {', '.join(sorted(names - {'patches', 'ext'}))}")
+        cur = getattr(obj, k)
+        if dataclasses.is_dataclass(cur):
+            if not isinstance(v, dict):
+                raise ConfigError(f"'{key}' in {source} is a section; write it as [{key}]")
+            _merge_into(cur, v, key + ".", source)
+        else:
+            setattr(obj, k, _check_value(v, hints[k], key, source))
+
+
+def apply_overlay(cfg: Config, overlay: dict, source: str) -> None:
+    """Merge a nested dict (a parsed TOML patch) into ``cfg``; errors name the key and source."""
+    base = {f.name for f in dataclasses.fields(cfg)} - {"patches", "ext"}
+    for sec, body in overlay.items():
+        if sec in cfg.ext:
+            if not isinstance(body, dict):
+                raise ConfigError(f"'{sec}' in {source} is a section; write it as [{sec}]")
+            _merge_into(cfg.ext[sec], body, sec + ".", source)
+        elif sec in base:
+            _merge_into(cfg, {sec: body}, "", source)
+        else:
+            known = sorted(base | set(cfg.ext))
+            raise ConfigError(f"unknown config section '{sec}' in {source}; known sections: "
+                              f"{', '.join(known)} (plugin sections exist only when the plugin "
+                              f"is installed)")
+
+
+def resolve_patch(name: str) -> Path:
+    """A patch by name (``patches/NAME.toml``) or by path."""
+    p = Path(name)
+    if p.suffix == ".toml" and p.exists():
+        return p
+    cand = PATCH_DIR / f"{name}.toml"
+    if cand.exists():
+        return cand
+    avail = ", ".join(sorted(q.stem for q in PATCH_DIR.glob("*.toml")))
+    raise ConfigError(f"unknown patch '{name}': no file {p} and no {cand}; available patches: {avail}")
+
+
+def load_patch(name: str) -> tuple[Path, dict]:
+    path = resolve_patch(name)
+    try:
+        with open(path, "rb") as f:
+            data = tomllib.load(f)
+    except tomllib.TOMLDecodeError as e:
+        raise ConfigError(f"patch {path} is not valid TOML: {e}") from None
+    return path, data
+
+
+def parse_set(expr: str) -> dict:
+    """``section.key=value`` (value parsed as TOML, bare words as strings) -> nested dict."""
+    if "=" not in expr:
+        raise ConfigError(f"--set '{expr}': expected section.key=value")
+    key, raw = expr.split("=", 1)
+    key = key.strip()
+    try:
+        value = tomllib.loads(f"v = {raw.strip()}")["v"]
+    except tomllib.TOMLDecodeError:
+        value = raw.strip()
+    parts = key.split(".")
+    if len(parts) < 2:
+        raise ConfigError(f"--set '{expr}': the key must name a section, e.g. train.iterations")
+    out: dict = {}
+    cur = out
+    for p in parts[:-1]:
+        cur = cur.setdefault(p, {})
+    cur[parts[-1]] = value
+    return out
+
+
+def build_config(patches: list[str] = (), sets: list[str] = ()) -> Config:
+    """Defaults, then each patch in order, then each ``--set``."""
+    cfg = default_config()
+    for name in patches:
+        path, data = load_patch(name)
+        # A patch may pull in other patches first: `include = ["cpu"]`.
+        for inc in data.pop("include", []):
+            sub = build_config([inc])
+            apply_overlay(cfg, to_dict(sub, drop_meta=True, only_changed_from=default_config()),
+                          f"patch {resolve_patch(inc)} (included by {path})")
+            cfg.patches.extend(sub.patches)
+        apply_overlay(cfg, data, f"patch {path}")
+        cfg.patches.append(path.stem if path.parent == PATCH_DIR else str(path))
+    for s in sets:
+        apply_overlay(cfg, parse_set(s), f"--set {s}")
+    validate(cfg)
+    return cfg
+
+
+def validate(cfg: Config) -> None:
+    if cfg.train.iterations <= 0:
+        raise ConfigError("train.iterations must be positive")
+    if cfg.data.background not in ("black", "white"):
+        raise ConfigError(f"data.background must be 'black' or 'white', got '{cfg.data.background}'")
+    if cfg.codec.weight_dtype not in ("float32", "float16"):
+        raise ConfigError(f"codec.weight_dtype must be float32 or float16, got '{cfg.codec.weight_dtype}'")
+
+
+# ----------------------------------------------------------------------------- serialization
+def to_dict(cfg: Config, drop_meta: bool = False, only_changed_from: Config | None = None) -> dict:
+    d = dataclasses.asdict(cfg)
+    ext = {k: dataclasses.asdict(v) for k, v in cfg.ext.items()}
+    d.pop("ext")
+    d.update(ext)
+    if drop_meta:
+        d.pop("patches")
+    if only_changed_from is not None:
+        ref = to_dict(only_changed_from, drop_meta=True)
+        d = _diff(d, ref)
+    return d
+
+
+def _diff(d: dict, ref: dict) -> dict:
+    out = {}
+    for k, v in d.items():
+        if isinstance(v, dict):
+            sub = _diff(v, ref.get(k, {}))
+            if sub:
+                out[k] = sub
+        elif ref.get(k) != v:
+            out[k] = v
+    return out
+
+
+def to_toml(cfg: Config) -> str:
+    import tomli_w
+
+    d = to_dict(cfg)
+    patches = d.pop("patches")
+    head = f"# merged config; patches applied in order: {patches}\npatches = {json.dumps(patches)}\n\n"
+    return head + tomli_w.dumps(d)
+
+
+def from_toml(path: str | Path) -> Config:
+    """Re-read a merged config written by :func:`to_toml` (a run folder's config.toml)."""
+    with open(path, "rb") as f:
+        data = tomllib.load(f)
+    cfg = default_config()
+    cfg.patches = list(data.pop("patches", []))
+    apply_overlay(cfg, data, f"config {path}")
+    return cfg
+
+
+def config_hash(cfg: Config) -> str:
+    """A short stable hash of the merged config (used to reuse finished runs)."""
+    d = to_dict(cfg, drop_meta=True)
+    return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:12]

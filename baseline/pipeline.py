@@ -1,0 +1,87 @@
+"""One view through the whole pipeline: prefilter -> (quantize) -> decode -> rasterize.
+
+Shared by training, evaluation and decoded models, so the three render exactly the same way.
+
+Phases (SPEC.md section 3):
+  ``none``      raw attribute values;
+  ``noise``     training adds U(-0.5, 0.5) * Q0 noise; evaluation rounds with Q0;
+  ``adaptive``  the entropy model's adaptive steps: noise in training (plus the rate estimate),
+                rounding (straight-through) at evaluation, with 16-bit anchor positions.
+  ``decoded``   values are already the decoded ones: nothing is quantized again.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Optional
+
+import torch
+
+from baseline.camera import Camera
+from baseline.render import prefilter_anchors, rasterize
+
+
+@dataclass
+class ViewResult:
+    render: object                    # RenderOutput
+    gaussians: object                 # Gaussians
+    camera: Camera
+    bits: dict = field(default_factory=dict)      # attribute -> [S] per-anchor bits on the sample
+    n_rate_anchors: int = 0
+
+
+def visible_anchors(model, cam: Camera) -> torch.Tensor:
+    """[M] indices of the anchors that pass the prefilter for ``cam``."""
+    with torch.no_grad():
+        scales = torch.exp(model.per_anchor["scaling"].detach()[:, :3])
+        vis = prefilter_anchors(model.xyz.detach(), scales, cam)
+    return vis.nonzero()[:, 0]
+
+
+def render_view(model, cam: Camera, background: torch.Tensor, *, phase: str = "none",
+                training: bool = False, entropy=None, rate_sample: float = 0.0,
+                backend: str = "auto", generator: Optional[torch.Generator] = None,
+                quantized_xyz: Optional[torch.Tensor] = None) -> ViewResult:
+    """Render one view.
+
+    Args:
+        model: AnchorModel.
+        cam: the view (possibly rescaled by the progressive schedule).
+        background: [3].
+        phase: none | noise | adaptive | decoded.
+        entropy: entropy model (needed for ``adaptive``).
+        rate_sample: fraction of visible, valid anchors on which bits are estimated (training).
+        quantized_xyz: [N,3] positions to decode from in evaluation of the ``adaptive`` phase
+            (the 16-bit positions the codec stores); default: the stored positions.
+    """
+    idx = visible_anchors(model, cam)
+    values = model.coded_values(idx)
+    xyz = model.xyz[idx]
+    bits: dict = {}
+    n_rate = 0
+    attrs = {a.name: a for a in model.coded_attributes()}
+    if phase == "noise":
+        if training:
+            values = {k: v + (torch.rand(v.shape, generator=generator) - 0.5) * attrs[k].q0
+                      for k, v in values.items()}
+        else:
+            values = {k: torch.round(v / attrs[k].q0) * attrs[k].q0 for k, v in values.items()}
+    elif phase == "adaptive":
+        if entropy is None:
+            raise ValueError("the adaptive phase needs an entropy model")
+        gmask = model.gaussian_mask(idx)
+        if training:
+            values, all_bits = entropy(xyz, values, gmask, training=True)
+            valid = (gmask.detach() > 0).any(dim=1)
+            choose = (torch.rand(len(idx), generator=generator) <= rate_sample) & valid
+            bits = {k: b[choose] for k, b in all_bits.items()}
+            n_rate = int(choose.sum())
+        else:
+            if quantized_xyz is not None:
+                xyz = quantized_xyz[idx]
+            values = entropy.quantize(xyz, values)
+    elif phase not in ("none", "decoded"):
+        raise ValueError(f"unknown phase '{phase}'")
+    g = model.decode(cam.center, idx, values, xyz=xyz)
+    out = rasterize(g.means, g.quats, g.scales, g.opacities, g.colors, cam,
+                    background=background, backend=backend)
+    return ViewResult(render=out, gaussians=g, camera=cam, bits=bits, n_rate_anchors=n_rate)

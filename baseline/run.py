@@ -1,0 +1,117 @@
+"""Run folders: train into one, reload it, evaluate it.
+
+A run folder holds ``config.toml`` (the merged config), ``scene.json`` (where the scene is and
+how it was loaded), ``checkpoint.pt``, ``results.json`` and ``renders/``.
+"""
+from __future__ import annotations
+
+import json
+import os
+import platform
+import time
+from pathlib import Path
+from typing import Optional
+
+import torch
+
+from baseline.config import Config, build_config, from_toml
+from baseline.train.trainer import CHECKPOINT_NAME, Trainer
+
+
+def load_scene_for(cfg: Config, scene_path: str):
+    from baseline.data.scene import load_scene
+
+    bg = (1.0, 1.0, 1.0) if cfg.data.background == "white" else (0.0, 0.0, 0.0)
+    return load_scene(scene_path, resolution=cfg.data.resolution, images=cfg.data.images or None,
+                      eval=cfg.data.eval, test_every=cfg.data.test_every, background=bg,
+                      cache_dir=cfg.data.cache_dir or None,
+                      random_init_points=cfg.data.random_init_points,
+                      random_init_extent=cfg.data.random_init_extent, seed=cfg.train.seed)
+
+
+def write_json_atomic(path: Path, data: dict) -> None:
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    tmp.write_text(json.dumps(data, indent=2, default=_json_default))
+    os.replace(tmp, path)
+
+
+def _json_default(o):
+    if isinstance(o, (torch.Tensor,)):
+        return o.tolist()
+    if hasattr(o, "item"):
+        return o.item()
+    return str(o)
+
+
+def versions() -> dict:
+    import numpy
+
+    v = {"python": platform.python_version(), "torch": torch.__version__, "numpy": numpy.__version__}
+    for mod in ("numba", "pycolmap", "constriction", "gsplat"):
+        try:
+            v[mod] = __import__(mod).__version__
+        except Exception:
+            pass
+    import baseline
+
+    v["pgs"] = baseline.__version__
+    return v
+
+
+def train_run(scene_path: str, out: str | Path, cfg: Config, resume: bool = False,
+              progress: bool = True, evaluate_after: bool = True) -> dict:
+    """Train (or resume) a run in ``out`` and evaluate it on the test views."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    scene = load_scene_for(cfg, scene_path)
+    trainer = Trainer(cfg, scene, out, progress=progress)
+    ck = out / CHECKPOINT_NAME
+    if resume and ck.exists():
+        trainer.load_checkpoint(ck)
+        print(f"resumed from {ck} at iteration {trainer.iteration}")
+    write_json_atomic(out / "scene.json", {"path": str(Path(scene_path).resolve()),
+                                           "protocol": getattr(scene, "protocol", {})})
+    trainer.train()
+    results = {
+        "config_patches": cfg.patches,
+        "scene": str(Path(scene_path).resolve()),
+        "protocol": getattr(scene, "protocol", {}),
+        "iterations": trainer.iteration,
+        "train_time_s": trainer.train_time,
+        "s_per_it": trainer.train_time / max(trainer.iteration, 1),
+        "threads": trainer.threads,
+        "voxel_size": trainer.voxel_size,
+        "anchors": trainer.model.n_anchors,
+        "versions": versions(),
+    }
+    if evaluate_after:
+        results["test"] = evaluate_trainer(trainer, scene, render_dir=out / "renders" / "test"
+                                           if cfg.train.save_test_renders else None)
+    write_json_atomic(out / "results.json", results)
+    return results
+
+
+def evaluate_trainer(trainer: Trainer, scene, render_dir: Optional[Path] = None, lpips_fn=None) -> dict:
+    from baseline.eval.evaluate import evaluate
+
+    cams = scene.test_cameras or scene.train_cameras
+    xyz_q = None
+    if trainer.phase == "adaptive":
+        xyz_q = trainer.entropy.quantized_positions(trainer.model.xyz.detach())
+    return evaluate(trainer.model, scene, cams, phase=trainer.phase, entropy=trainer.entropy,
+                    backend=trainer.cfg.train.rasterizer, quantized_xyz=xyz_q,
+                    render_dir=render_dir, lpips_fn=lpips_fn)
+
+
+def load_run(run_dir: str | Path, progress: bool = False) -> tuple[Trainer, object]:
+    """Rebuild the trainer of a run folder from its config and checkpoint."""
+    run_dir = Path(run_dir)
+    for name in ("config.toml", "scene.json", CHECKPOINT_NAME):
+        if not (run_dir / name).exists():
+            raise FileNotFoundError(f"{run_dir} is not a finished run folder: {name} is missing")
+    cfg = from_toml(run_dir / "config.toml")
+    scene_path = json.loads((run_dir / "scene.json").read_text())["path"]
+    scene = load_scene_for(cfg, scene_path)
+    trainer = Trainer(cfg, scene, run_dir, progress=progress)
+    trainer.load_checkpoint(run_dir / CHECKPOINT_NAME)
+    return trainer, scene

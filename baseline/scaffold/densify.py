@@ -1,0 +1,184 @@
+"""Anchor growing and pruning (Scaffold-GS, with HAC's schedule), as a training hook set.
+
+Choices where the reference code has quirks (each is a config flag and is tested):
+  * Level skip: the reference stops trying levels 1-2 of a growing step when level 0 added no
+    anchor. We try every level by default (``densify.reference_level_skip = false``): a level-0
+    miss says nothing about coarser cells, and skipping them only slows growth on sparse scenes.
+  * Scaling clamp on prune: the reference clamps the last three log-scales of every anchor to
+    <= 0.05 whenever it adjusts anchors. We keep it (``densify.prune_clamp_log_scaling = 0.05``;
+    a negative value turns it off): it only bounds Gaussians larger than ~1 scene unit.
+  * Growth statistics are gradients w.r.t. NDC coordinates (as the reference's
+    ``viewspace_points``): the rasterizer reports pixel-space gradients, multiplied here by W/2
+    and H/2.
+"""
+from __future__ import annotations
+
+import torch
+
+from baseline import registry
+
+
+def _unique_rows(a: torch.Tensor):
+    return torch.unique(a, dim=0, return_inverse=True)
+
+
+def grow_anchors(model, grads: torch.Tensor, eligible: torch.Tensor, cfg, voxel_size: float,
+                 optimizer=None, generator: torch.Generator | None = None) -> int:
+    """One Scaffold-GS growing step.
+
+    Args:
+        grads: [N*K] mean NDC gradient norm per neural Gaussian.
+        eligible: [N*K] bool, Gaussians with enough statistics (count > interval * st * 0.5).
+    Returns:
+        number of anchors added.
+    """
+    K = model.n_offsets
+    N0 = model.n_anchors
+    with torch.no_grad():
+        xyz0 = model.xyz.detach()
+        scaling = torch.exp(model.per_anchor["scaling"].detach())
+        offsets = model.per_anchor["offsets"].detach()
+        all_xyz = (xyz0[:, None, :] + offsets * scaling[:, None, :3]).reshape(-1, 3)
+    added = 0
+    m = cfg.model
+    for level in range(m.update_depth):
+        thr = cfg.densify.grad_threshold * float((m.update_hierarchy_factor // 2) ** level)
+        cand = (grads >= thr) & eligible
+        keep_p = 0.5 ** (level + 1)
+        rand = torch.rand(N0 * K, generator=generator) > keep_p
+        cand = cand & rand
+        size = voxel_size * (m.update_init_factor // (m.update_hierarchy_factor ** level))
+        if size <= 0:
+            continue
+        n_new = 0
+        if cand.any():
+            sel = cand.nonzero()[:, 0]
+            cells = torch.round(all_xyz[sel].double() / size).long()          # [C,3]
+            uniq, inverse = _unique_rows(cells)                                # [U,3], [C]
+            existing = torch.unique(torch.round(model.xyz.detach().double() / size).long(), dim=0)
+            both, inv_both = torch.unique(torch.cat([existing, uniq], 0), dim=0, return_inverse=True)
+            occupied = torch.zeros(len(both), dtype=torch.bool)
+            occupied[inv_both[: len(existing)]] = True
+            free = ~occupied[inv_both[len(existing):]]                         # [U]
+            if free.any():
+                remap = torch.full((len(uniq),), -1, dtype=torch.long)
+                remap[free] = torch.arange(int(free.sum()))
+                new_inv = remap[inverse]
+                ok = new_inv >= 0
+                parent = sel[ok] // K
+                new_xyz = (uniq[free].double() * size).float()
+                n_new = len(new_xyz)
+                new_scaling = torch.full((n_new, 6), float(torch.log(torch.tensor(size))))
+                model.append_anchors(new_xyz, new_scaling, parent, new_inv[ok], optimizer)
+        added += n_new
+        if n_new == 0 and level == 0 and cfg.densify.reference_level_skip:
+            break
+    return added
+
+
+class ScaffoldDensify:
+    """Growing statistics after backward, grow + prune every ``update_interval`` iterations."""
+
+    name = "scaffold_densify"
+
+    def __init__(self, trainer):
+        self.t = trainer
+        cfg = trainer.cfg
+        at = cfg.train.at
+        d = cfg.densify
+        self.stat_from = at(d.stat_from)
+        self.update_from = at(d.update_from)
+        self.update_until = at(d.update_until)
+        self.interval = max(1, at(d.update_interval))
+        self.skip = (at(d.skip_from), at(d.skip_until))
+        self.grow_count = self.interval * d.success_threshold * 0.5
+        self.prune_count = self.interval * d.success_threshold
+        self.reset(trainer.model.n_anchors, trainer.model.n_offsets)
+        self.log = {"grown": 0, "pruned": 0}
+
+    def reset(self, N, K):
+        self.opacity_accum = torch.zeros(N)
+        self.anchor_demon = torch.zeros(N)
+        self.grad_accum = torch.zeros(N * K)
+        self.grad_denom = torch.zeros(N * K)
+
+    def state_dict(self):
+        return {k: getattr(self, k) for k in ("opacity_accum", "anchor_demon", "grad_accum", "grad_denom")}
+
+    def load_state_dict(self, s):
+        for k, v in s.items():
+            setattr(self, k, v.clone())
+
+    # -------------------------------------------------------------------------------- hooks
+    def after_backward(self, it: int, ctx) -> None:
+        if not (self.stat_from < it < self.update_until):
+            return
+        g, out, cam = ctx["gaussians"], ctx["render"], ctx["camera"]
+        K = self.t.model.n_offsets
+        with torch.no_grad():
+            vis = g.visible
+            op = g.opacity_all.detach().clamp_min(0).sum(dim=1)
+            self.opacity_accum[vis] += op
+            self.anchor_demon[vis] += 1
+            if out.means2d.grad is None:
+                return
+            grad = out.means2d.grad
+            gn = torch.sqrt((grad[:, 0] * cam.width * 0.5) ** 2 + (grad[:, 1] * cam.height * 0.5) ** 2)
+            vis_idx = vis.nonzero()[:, 0]
+            flat = (vis_idx[:, None] * K + torch.arange(K)[None, :]).reshape(-1)  # [M*K]
+            kept = flat[g.selection]                                             # [G]
+            upd = out.radii > 0
+            self.grad_accum.index_add_(0, kept[upd], gn[upd])
+            self.grad_denom.index_add_(0, kept[upd], torch.ones(int(upd.sum())))
+
+    def after_step(self, it: int) -> None:
+        if not (self.update_from < it < self.update_until) or it % self.interval != 0:
+            return
+        if self.skip[0] <= it < self.skip[1]:
+            return
+        self.adjust()
+
+    def adjust(self) -> None:
+        t = self.t
+        model = t.model
+        K = model.n_offsets
+        cfg = t.cfg
+        N0 = model.n_anchors
+        grads = self.grad_accum / self.grad_denom.clamp_min(1)
+        eligible = self.grad_denom > self.grow_count
+        grads = torch.where(eligible, grads, torch.zeros_like(grads))
+        added = grow_anchors(model, grads, eligible, cfg, t.voxel_size, t.optimizer, t.generator)
+        # reset statistics of the Gaussians that were eligible; zero stats for new anchors
+        self.grad_denom[eligible] = 0
+        self.grad_accum[eligible] = 0
+        pad = torch.zeros(added * K)
+        self.grad_denom = torch.cat([self.grad_denom, pad])
+        self.grad_accum = torch.cat([self.grad_accum, pad])
+        prune = (self.opacity_accum < cfg.densify.min_opacity * self.anchor_demon)
+        counted = self.anchor_demon > self.prune_count
+        prune = prune & counted
+        self.opacity_accum[counted] = 0
+        self.anchor_demon[counted] = 0
+        self.opacity_accum = torch.cat([self.opacity_accum, torch.zeros(added)])
+        self.anchor_demon = torch.cat([self.anchor_demon, torch.zeros(added)])
+        prune = torch.cat([prune, torch.zeros(added, dtype=torch.bool)])
+        n_pruned = int(prune.sum())
+        if n_pruned:
+            keep = ~prune
+            model.keep_anchors(keep, t.optimizer)
+            self.opacity_accum = self.opacity_accum[keep]
+            self.anchor_demon = self.anchor_demon[keep]
+            keepk = keep[:, None].expand(-1, K).reshape(-1)
+            self.grad_accum = self.grad_accum[keepk]
+            self.grad_denom = self.grad_denom[keepk]
+        c = cfg.densify.prune_clamp_log_scaling
+        if c >= 0:
+            with torch.no_grad():
+                s = model.per_anchor["scaling"]
+                s[:, 3:] = s[:, 3:].clamp(max=c)
+        self.log["grown"] += added
+        self.log["pruned"] += n_pruned
+        t.on_anchors_changed(N0, model.n_anchors)
+
+
+registry.register("hooks", "scaffold_densify", ScaffoldDensify)

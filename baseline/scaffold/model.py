@@ -1,0 +1,242 @@
+"""The anchor model: per-anchor parameters, feature provider, decoder MLPs, neural Gaussians.
+
+Per-anchor tensors live in one place (:class:`AnchorModel.per_anchor`) so that growing and
+pruning keep every one of them, and its Adam moments, aligned: moments of new anchors start at
+zero and rows of removed anchors are dropped. A feature provider adds its own per-anchor
+tensors (the explicit feature table, a residual, ...) through :meth:`add_per_anchor`, with a rule
+that initialises the rows of grown anchors.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable, Optional
+
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+
+from baseline.contracts import CodedAttribute
+
+# grow rule: (values of this tensor [N, ...], parent index of each new-anchor candidate [C],
+#             inverse index candidate -> new anchor [C], number of new anchors) -> [n_new, ...]
+GrowRule = Callable[[torch.Tensor, torch.Tensor, torch.Tensor, int], torch.Tensor]
+
+
+def grow_zeros(values, parent, inverse, n_new):
+    return values.new_zeros((n_new,) + tuple(values.shape[1:]))
+
+
+def grow_max_of_parents(values, parent, inverse, n_new):
+    """Per new anchor, the element-wise max of its parents' rows (Scaffold-GS feature rule)."""
+    src = values[parent].reshape(len(parent), -1)
+    out = src.new_full((n_new, src.shape[1]), float("-inf"))
+    out = out.scatter_reduce(0, inverse[:, None].expand_as(src), src, reduce="amax")
+    return out.reshape((n_new,) + tuple(values.shape[1:]))
+
+
+class DecoderMLPs(nn.Module):
+    """Scaffold-GS / HAC heads: input feat + view direction (3) + distance (1).
+
+    opacity: Linear(in,h) ReLU Linear(h,K)  -> tanh applied by the caller
+    cov:     Linear(in,h) ReLU Linear(h,7K) -> no activation
+    color:   Linear(in,h) ReLU Linear(h,3K) -> sigmoid applied by the caller
+    The heads return pre-activation values so that a refiner can add corrections before the
+    activations (see :class:`Gaussians`).
+    """
+
+    def __init__(self, feat_dim: int, n_offsets: int, hidden: int, use_distance: bool = True):
+        super().__init__()
+        d_in = feat_dim + 3 + (1 if use_distance else 0)
+        self.use_distance = use_distance
+        self.n_offsets = n_offsets
+        self.mlp_opacity = nn.Sequential(nn.Linear(d_in, hidden), nn.ReLU(), nn.Linear(hidden, n_offsets))
+        self.mlp_cov = nn.Sequential(nn.Linear(d_in, hidden), nn.ReLU(), nn.Linear(hidden, 7 * n_offsets))
+        self.mlp_color = nn.Sequential(nn.Linear(d_in, hidden), nn.ReLU(), nn.Linear(hidden, 3 * n_offsets))
+
+    def forward(self, feat: torch.Tensor, view_dir: torch.Tensor, dist: torch.Tensor):
+        """feat [M,F], view_dir [M,3], dist [M,1] -> raw opacity [M,K], cov [M,K,7], color [M,K,3]."""
+        parts = [feat, view_dir] + ([dist] if self.use_distance else [])
+        x = torch.cat(parts, dim=-1)
+        K = self.n_offsets
+        return (self.mlp_opacity(x), self.mlp_cov(x).view(-1, K, 7), self.mlp_color(x).view(-1, K, 3))
+
+
+@dataclass
+class Gaussians:
+    """Neural Gaussians of the visible anchors of one view (after the opacity > 0 selection).
+
+    Attributes:
+        means [G,3], quats [G,4] (normalized), scales [G,3], opacities [G], colors [G,3].
+        anchor_index [G]: index (into all anchors) of the anchor each Gaussian belongs to.
+        selection [M*K] bool: which of the visible anchors' K Gaussians were kept.
+        opacity_all [M,K]: masked tanh opacity of every candidate Gaussian (growing statistics).
+        visible [N] bool: the anchors that passed the prefilter.
+    """
+
+    means: torch.Tensor
+    quats: torch.Tensor
+    scales: torch.Tensor
+    opacities: torch.Tensor
+    colors: torch.Tensor
+    anchor_index: torch.Tensor
+    selection: torch.Tensor
+    opacity_all: torch.Tensor
+    visible: torch.Tensor
+
+
+class AnchorModel(nn.Module):
+    """Anchors + feature provider + decoder (+ optional refiner).
+
+    Per-anchor tensors (``per_anchor``): xyz [N,3] (frozen), offsets [N,K,3], scaling [N,6]
+    (log), mask [N,K,1] (logits), plus whatever the provider adds (e.g. feat [N,50]).
+    """
+
+    def __init__(self, xyz: torch.Tensor, log_scaling: torch.Tensor, cfg_model, provider_factory,
+                 refiner_factory=None, mask_threshold: float = 0.01):
+        super().__init__()
+        N = xyz.shape[0]
+        K = cfg_model.n_offsets
+        self.n_offsets = K
+        self.cfg = cfg_model
+        self.mask_threshold = mask_threshold
+        self.per_anchor = nn.ParameterDict()
+        self.grow_rules: dict[str, Optional[GrowRule]] = {}
+        self.add_per_anchor("xyz", xyz.float().clone(), None, trainable=False)
+        self.add_per_anchor("offsets", torch.zeros(N, K, 3), grow_zeros)
+        self.add_per_anchor("scaling", log_scaling.float().clone(), None)  # set by the grower
+        self.add_per_anchor("mask", torch.ones(N, K, 1), None)            # init logit 1
+        self.provider = provider_factory(self)
+        self.decoder = DecoderMLPs(self.provider.feature_dim, K, cfg_model.hidden, cfg_model.use_distance)
+        self.refiner = refiner_factory(self) if refiner_factory is not None else None
+
+    # ------------------------------------------------------------------ per-anchor bookkeeping
+    def add_per_anchor(self, name: str, value: torch.Tensor, grow_rule: Optional[GrowRule],
+                       trainable: bool = True) -> None:
+        self.per_anchor[name] = nn.Parameter(value, requires_grad=trainable)
+        self.grow_rules[name] = grow_rule
+
+    @property
+    def n_anchors(self) -> int:
+        return self.per_anchor["xyz"].shape[0]
+
+    @property
+    def xyz(self) -> torch.Tensor:
+        return self.per_anchor["xyz"]
+
+    def coded_attributes(self) -> tuple[CodedAttribute, ...]:
+        return tuple(self.provider.coded_attributes())
+
+    def gaussian_mask(self, idx: Optional[torch.Tensor] = None) -> torch.Tensor:
+        """[M,K] binary mask (sigmoid(logit) > threshold) with a sigmoid straight-through grad."""
+        logits = self.per_anchor["mask"] if idx is None else self.per_anchor["mask"][idx]
+        s = torch.sigmoid(logits[..., 0])
+        hard = (s > self.mask_threshold).float()
+        return hard + s - s.detach()
+
+    def anchor_valid(self) -> torch.Tensor:
+        """[N] bool: an anchor is valid (coded) if any of its K masks is on."""
+        with torch.no_grad():
+            return (torch.sigmoid(self.per_anchor["mask"][..., 0]) > self.mask_threshold).any(dim=1)
+
+    def coded_values(self, idx: torch.Tensor) -> dict[str, torch.Tensor]:
+        """Values of every coded attribute for anchors ``idx`` [M]: name -> [M, dims].
+
+        scaling is coded AFTER exp (SPEC.md section 3); offsets flattened to [M, 3K].
+        """
+        vals = dict(self.provider.coded_values(idx))
+        vals["scaling"] = torch.exp(self.per_anchor["scaling"][idx])
+        vals["offsets"] = self.per_anchor["offsets"][idx].reshape(len(idx), -1)
+        return vals
+
+    # ------------------------------------------------------------------------- decoding
+    def decode(self, cam_center: torch.Tensor, idx: torch.Tensor,
+               values: Optional[dict[str, torch.Tensor]] = None,
+               xyz: Optional[torch.Tensor] = None, visible: Optional[torch.Tensor] = None) -> Gaussians:
+        """Neural Gaussians of anchors ``idx`` [M] seen from ``cam_center`` [3].
+
+        Args:
+            values: coded attribute values for ``idx`` (possibly quantized); default: raw values.
+            xyz: [M,3] anchor positions to use (e.g. 16-bit quantized); default: stored ones.
+        """
+        if values is None:
+            values = self.coded_values(idx)
+        if xyz is None:
+            xyz = self.per_anchor["xyz"][idx]
+        M, K = len(idx), self.n_offsets
+        feat = self.provider.decoder_features(idx, values, xyz)
+        view = xyz - cam_center[None, :]
+        dist = view.norm(dim=1, keepdim=True).clamp_min(1e-8)
+        view_dir = view / dist
+        raw_op, raw_cov, raw_col = self.decoder(feat, view_dir, dist)
+        if self.refiner is not None and self.refiner.active:
+            d = self.refiner(idx, values, view_dir, dist)
+            # Corrections enter before the activations (documented contract of refiners).
+            raw_op = raw_op + d["opacity"]
+            raw_cov = raw_cov + d["cov"]
+            raw_col = raw_col + d["color"]
+        gmask = self.gaussian_mask(idx)                             # [M,K]
+        opacity = torch.tanh(raw_op) * gmask                        # [M,K]
+        sel = (opacity > 0).reshape(-1)                             # [M*K]
+        scaling = values["scaling"]                                 # [M,6] activated
+        offsets = values["offsets"].view(M, K, 3) * scaling[:, None, :3]
+        means = (xyz[:, None, :] + offsets).reshape(-1, 3)
+        scales = (scaling[:, None, 3:] * torch.sigmoid(raw_cov[..., :3])).reshape(-1, 3)
+        quats = F.normalize(raw_cov[..., 3:7].reshape(-1, 4), dim=-1)
+        colors = torch.sigmoid(raw_col).reshape(-1, 3)
+        anchor_index = idx[:, None].expand(M, K).reshape(-1)
+        vis = torch.zeros(self.n_anchors, dtype=torch.bool, device=idx.device)
+        vis[idx] = True
+        return Gaussians(means=means[sel], quats=quats[sel], scales=scales[sel],
+                         opacities=opacity.reshape(-1)[sel], colors=colors[sel],
+                         anchor_index=anchor_index[sel], selection=sel, opacity_all=opacity,
+                         visible=vis if visible is None else visible)
+
+    # ------------------------------------------------------------------- growing / pruning
+    def append_anchors(self, new_xyz: torch.Tensor, new_log_scaling: torch.Tensor,
+                       parent: torch.Tensor, inverse: torch.Tensor, optimizer=None) -> None:
+        """Add anchors. ``parent`` [C] / ``inverse`` [C] map candidate Gaussians to the new anchors."""
+        n_new = new_xyz.shape[0]
+        if n_new == 0:
+            return
+        K = self.n_offsets
+        explicit = {
+            "xyz": new_xyz.float(),
+            "scaling": new_log_scaling.float(),
+            "mask": torch.ones(n_new, K, 1),
+        }
+        for name, p in self.per_anchor.items():
+            if name in explicit:
+                rows = explicit[name].to(p)
+            else:
+                rows = self.grow_rules[name](p.detach(), parent, inverse, n_new).to(p)
+            _replace_param(self.per_anchor, name, torch.cat([p.detach(), rows], 0), optimizer,
+                           n_append=n_new)
+
+    def keep_anchors(self, keep: torch.Tensor, optimizer=None) -> None:
+        """Keep only anchors where ``keep`` [N] is True (prune the rest)."""
+        for name, p in list(self.per_anchor.items()):
+            _replace_param(self.per_anchor, name, p.detach()[keep], optimizer, keep=keep)
+
+
+def _replace_param(pdict: nn.ParameterDict, name: str, new_value: torch.Tensor, optimizer,
+                   keep: Optional[torch.Tensor] = None, n_append: int = 0) -> None:
+    """Swap a per-anchor parameter for a resized one, carrying its Adam moments along."""
+    old = pdict[name]
+    new = nn.Parameter(new_value.contiguous(), requires_grad=old.requires_grad)
+    if optimizer is not None:
+        for group in optimizer.param_groups:
+            for i, q in enumerate(group["params"]):
+                if q is old:
+                    state = optimizer.state.pop(old, None)
+                    if state:
+                        for k in ("exp_avg", "exp_avg_sq"):
+                            if k in state:
+                                s = state[k]
+                                if keep is not None:
+                                    s = s[keep]
+                                if n_append:
+                                    s = torch.cat([s, s.new_zeros((n_append,) + tuple(s.shape[1:]))], 0)
+                                state[k] = s.contiguous()
+                        optimizer.state[new] = state
+                    group["params"][i] = new
+    pdict[name] = new

@@ -1,0 +1,283 @@
+"""The trainer: Adam with per-group exponential schedules, named hooks, exact resume.
+
+Hooks (DESIGN.md, "Training hooks") are objects built as ``cls(trainer)`` from registry kind
+``hooks`` and may define ``before_step(it)``, ``after_backward(it, ctx)``, ``after_step(it)``,
+``state_dict()`` / ``load_state_dict(s)`` and ``postfix() -> dict`` (shown in the progress bar).
+Hooks steer the trainer through ``trainer.phase`` (quantization phase), ``trainer.render_scale``
+(progressive resolution) and ``trainer.extra_losses`` (name -> callable(ctx) -> scalar).
+"""
+from __future__ import annotations
+
+import json
+import math
+import os
+import random
+import time
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from baseline import registry
+from baseline.config import Config, to_toml
+from baseline.pipeline import render_view
+from baseline.scaffold.anchors import auto_voxel_size, init_log_scaling, voxelize
+from baseline.scaffold.model import AnchorModel
+from baseline.train.losses import lr_exp, reconstruction_loss
+
+CHECKPOINT_NAME = "checkpoint.pt"
+
+
+def set_threads(n: int) -> int:
+    """Use ``n`` threads (0 = all cores) in torch and numba; never more than the cores."""
+    cores = os.cpu_count() or 1
+    n = cores if n <= 0 else min(n, cores)
+    torch.set_num_threads(n)
+    try:
+        import numba
+
+        numba.set_num_threads(min(n, numba.config.NUMBA_NUM_THREADS))
+    except Exception:  # numba absent or threads fixed by the environment
+        pass
+    return n
+
+
+def build_model(cfg: Config, points: torch.Tensor) -> tuple[AnchorModel, float]:
+    """Anchors from the scene's points; returns (model, voxel size)."""
+    if points.numel() == 0:
+        raise ValueError("the scene has no points to initialise anchors from")
+    v = cfg.model.voxel_size
+    if v <= 0:
+        v = auto_voxel_size(points)
+    xyz = voxelize(points, v)
+    log_scaling = init_log_scaling(xyz)
+    prov_cls = registry.get("feature_provider", cfg.model.feature_provider)
+    ref_cls = None if cfg.model.refiner in ("", "none") else registry.get("refiner", cfg.model.refiner)
+    model = AnchorModel(
+        xyz, log_scaling, cfg.model,
+        provider_factory=lambda m: prov_cls(m, cfg),
+        refiner_factory=(lambda m: ref_cls(m, cfg)) if ref_cls else None,
+        mask_threshold=cfg.entropy.mask_threshold)
+    return model, v
+
+
+def build_entropy(cfg: Config, model: AnchorModel):
+    cls = registry.get("entropy_model", cfg.entropy.model)
+    return cls.from_config(model.coded_attributes(), model.n_offsets, cfg)
+
+
+class Trainer:
+    def __init__(self, cfg: Config, scene, out_dir: str | Path, progress: bool = True):
+        self.cfg = cfg
+        self.scene = scene
+        self.out = Path(out_dir)
+        self.progress = progress
+        self.threads = set_threads(cfg.train.threads)
+        torch.manual_seed(cfg.train.seed)
+        np.random.seed(cfg.train.seed)
+        random.seed(cfg.train.seed)
+        self.generator = torch.Generator().manual_seed(cfg.train.seed)
+        self.model, self.voxel_size = build_model(cfg, scene.points)
+        self.entropy = build_entropy(cfg, self.model)
+        self.extent = float(scene.extent)
+        self.background = scene.background.float()
+        self.phase = "none"
+        self.render_scale = 1.0
+        self.extra_losses: dict = {}
+        self.iteration = 0
+        self.train_time = 0.0
+        self._view_order: list[int] = []
+        self.optimizer = torch.optim.Adam(self._param_groups(), lr=0.0, eps=1e-15)
+        self.hooks = [registry.get("hooks", name)(self) for name in cfg.train.hooks]
+
+    # ---------------------------------------------------------------------------- optimizer
+    def _param_groups(self) -> list[dict]:
+        cfg, lr, ext = self.cfg, self.cfg.lr, self.extent
+        m = self.model
+        groups = [
+            dict(name="offsets", params=[m.per_anchor["offsets"]], lr_init=lr.offset_init * ext,
+                 lr_final=lr.offset_final * ext),
+            dict(name="scaling", params=[m.per_anchor["scaling"]], lr_init=lr.scaling, lr_final=lr.scaling),
+            dict(name="mask", params=[m.per_anchor["mask"]], lr_init=lr.mask_init * ext,
+                 lr_final=lr.mask_final * ext),
+            dict(name="mlp_opacity", params=list(m.decoder.mlp_opacity.parameters()),
+                 lr_init=lr.mlp_opacity_init, lr_final=lr.mlp_opacity_final),
+            dict(name="mlp_cov", params=list(m.decoder.mlp_cov.parameters()), lr_init=lr.mlp_cov,
+                 lr_final=lr.mlp_cov),
+            dict(name="mlp_color", params=list(m.decoder.mlp_color.parameters()),
+                 lr_init=lr.mlp_color_init, lr_final=lr.mlp_color_final),
+        ]
+        groups += m.provider.param_groups(cfg)
+        if m.refiner is not None:
+            groups += m.refiner.param_groups(cfg)
+        groups += self.entropy.param_groups(cfg)
+        for g in groups:
+            g["lr"] = g["lr_init"]
+        return [g for g in groups if g["params"]]
+
+    def update_lr(self, it: int) -> None:
+        total = self.cfg.train.iterations
+        for g in self.optimizer.param_groups:
+            g["lr"] = lr_exp(it, total, g["lr_init"], g["lr_final"])
+
+    def on_anchors_changed(self, n_before: int, n_after: int) -> None:
+        """Called by growing/pruning hooks after the anchor set changed."""
+
+    # ------------------------------------------------------------------------------- views
+    def next_view(self):
+        if not self._view_order:
+            n = len(self.scene.train_cameras)
+            self._view_order = torch.randperm(n, generator=self.generator).tolist()
+        return self.scene.train_cameras[self._view_order.pop()]
+
+    # -------------------------------------------------------------------------------- loop
+    def step(self, it: int) -> dict:
+        cfg = self.cfg
+        for h in self.hooks:
+            if hasattr(h, "before_step"):
+                h.before_step(it)
+        self.update_lr(it)
+        cam = self.next_view()
+        gt = self.scene.image(cam)
+        if self.render_scale != 1.0:
+            cam_r = cam.scaled(self.render_scale)
+            gt = torch.nn.functional.interpolate(
+                gt.permute(2, 0, 1)[None], size=(cam_r.height, cam_r.width), mode="bilinear",
+                align_corners=False, antialias=False)[0].permute(1, 2, 0)
+            cam = cam_r
+        res = render_view(self.model, cam, self.background, phase=self.phase, training=True,
+                          entropy=self.entropy, rate_sample=cfg.entropy.rate_sample,
+                          backend=cfg.train.rasterizer, generator=self.generator)
+        g, out = res.gaussians, res.render
+        if out.means2d.requires_grad:
+            out.means2d.retain_grad()
+        loss, l1 = reconstruction_loss(out.image, gt, cfg.train.lambda_dssim)
+        terms = {"l1": float(l1)}
+        if g.scales.shape[0] > 0 and cfg.train.lambda_volume > 0:
+            loss = loss + cfg.train.lambda_volume * g.scales.prod(dim=1).mean()
+        if self.phase == "adaptive":
+            dims = sum(a.dims for a in self.model.coded_attributes())
+            rate = 0.0
+            if res.n_rate_anchors > 0:
+                bits = sum(b.sum() for b in res.bits.values())
+                rate = bits / (res.n_rate_anchors * dims)
+                terms["bpp"] = float(rate)
+            hb = self.entropy.hash_bits()
+            if torch.is_tensor(hb):
+                rate = rate + hb / (self.model.n_anchors * dims)
+            loss = loss + cfg.entropy.lmbda * rate
+            loss = loss + cfg.entropy.mask_lambda * torch.sigmoid(self.model.per_anchor["mask"]).mean()
+        ctx = {"render": out, "gaussians": g, "camera": cam, "gt": gt, "result": res}
+        for name, fn in self.extra_losses.items():
+            loss = loss + fn(ctx)
+        loss.backward()
+        for h in self.hooks:
+            if hasattr(h, "after_backward"):
+                h.after_backward(it, ctx)
+        self.optimizer.step()
+        self.optimizer.zero_grad(set_to_none=True)
+        for h in self.hooks:
+            if hasattr(h, "after_step"):
+                h.after_step(it)
+        with torch.no_grad():
+            mse = ((out.image.detach().clamp(0, 1) - gt) ** 2).mean()
+            terms["psnr"] = float(-10 * torch.log10(mse.clamp_min(1e-10)))
+        terms["loss"] = float(loss)
+        terms["gaussians"] = int(g.means.shape[0])
+        return terms
+
+    def train(self, until: Optional[int] = None, checkpoint_every: Optional[int] = None) -> dict:
+        cfg = self.cfg
+        total = cfg.train.iterations if until is None else min(until, cfg.train.iterations)
+        ck = cfg.train.at(cfg.train.checkpoint_every) if checkpoint_every is None else checkpoint_every
+        self.out.mkdir(parents=True, exist_ok=True)
+        (self.out / "config.toml").write_text(to_toml(cfg))
+        bar = tqdm(total=total, initial=self.iteration, desc="train", disable=not self.progress,
+                   dynamic_ncols=True)
+        last = {}
+        ema_loss = None
+        while self.iteration < total:
+            it = self.iteration + 1
+            t0 = time.perf_counter()
+            terms = self.step(it)
+            self.train_time += time.perf_counter() - t0
+            self.iteration = it
+            ema_loss = terms["loss"] if ema_loss is None else 0.9 * ema_loss + 0.1 * terms["loss"]
+            last = terms
+            if it % cfg.train.log_every == 0 or it == total:
+                post = {"loss": f"{ema_loss:.4f}", "psnr": f"{terms['psnr']:.2f}",
+                        "anchors": self.model.n_anchors, "gs": terms["gaussians"], "ph": self.phase}
+                if "bpp" in terms:
+                    post["bits"] = f"{terms['bpp']:.2f}"
+                bar.set_postfix(post, refresh=False)
+            bar.update(1)
+            if ck and it % ck == 0 and it < total:
+                self.save_checkpoint()
+        bar.close()
+        self.save_checkpoint()
+        return last
+
+    # ------------------------------------------------------------------------- checkpoints
+    def state_dict(self) -> dict:
+        return {
+            "iteration": self.iteration,
+            "train_time": self.train_time,
+            "shapes": {k: tuple(v.shape) for k, v in self.model.per_anchor.items()},
+            "model": self.model.state_dict(),
+            "entropy": self.entropy.state_dict(),
+            "optimizer": self.optimizer.state_dict(),
+            "hooks": {type(h).__name__: h.state_dict() for h in self.hooks if hasattr(h, "state_dict")},
+            "phase": self.phase,
+            "render_scale": self.render_scale,
+            "voxel_size": self.voxel_size,
+            "view_order": list(self._view_order),
+            "rng": {"torch": torch.get_rng_state(), "gen": self.generator.get_state(),
+                    "numpy": np.random.get_state(), "python": random.getstate()},
+        }
+
+    def save_checkpoint(self, path: Optional[Path] = None) -> Path:
+        path = Path(path) if path else self.out / CHECKPOINT_NAME
+        tmp = path.with_suffix(".tmp")
+        torch.save(self.state_dict(), tmp)
+        os.replace(tmp, path)
+        return path
+
+    def load_checkpoint(self, path: str | Path) -> None:
+        path = Path(path)
+        try:
+            s = torch.load(path, map_location="cpu", weights_only=False)
+        except Exception as e:
+            raise ValueError(f"cannot read checkpoint {path}: {e}") from None
+        for k, shape in s["shapes"].items():
+            if k not in self.model.per_anchor:
+                raise ValueError(f"checkpoint {path} has per-anchor tensor '{k}' this model lacks")
+            self.model.per_anchor[k] = torch.nn.Parameter(
+                torch.zeros(shape), requires_grad=self.model.per_anchor[k].requires_grad)
+        check_finite(s["model"], path)
+        self.model.load_state_dict(s["model"])
+        self.entropy.load_state_dict(s["entropy"])
+        self.optimizer = torch.optim.Adam(self._param_groups(), lr=0.0, eps=1e-15)
+        self.optimizer.load_state_dict(s["optimizer"])
+        for h in self.hooks:
+            st = s["hooks"].get(type(h).__name__)
+            if st is not None and hasattr(h, "load_state_dict"):
+                h.load_state_dict(st)
+        self.iteration = s["iteration"]
+        self.train_time = s["train_time"]
+        self.phase = s["phase"]
+        self.render_scale = s["render_scale"]
+        self.voxel_size = s["voxel_size"]
+        self._view_order = list(s["view_order"])
+        torch.set_rng_state(s["rng"]["torch"])
+        self.generator.set_state(s["rng"]["gen"])
+        np.random.set_state(s["rng"]["numpy"])
+        random.setstate(s["rng"]["python"])
+
+
+def check_finite(state: dict, path) -> None:
+    """Refuse a checkpoint with NaN/Inf values, naming the tensor."""
+    for k, v in state.items():
+        if torch.is_tensor(v) and v.is_floating_point() and not torch.isfinite(v).all():
+            raise ValueError(f"checkpoint {path}: tensor '{k}' contains NaN or Inf values")

@@ -1,0 +1,32 @@
+"""Predict-GS configuration section ``[predict]`` (paper section 3, appendix A.2; SPEC.md 4).
+
+Milestones are at the paper's 30k scale and scale with ``train.iterations`` like the baseline's.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass
+class PredictConfig:
+    # Spatial Feature Pool (its own binary hash grid, HAC layout) + two-layer fusion MLP -> 50.
+    fusion_hidden: int = 64            # choose: the paper gives two layers and the 50-dim output only
+    grid_auto: bool = False            # size the SFP tables from the anchor count
+    # Residual compensation
+    residual: bool = True              # False: SFP only (ablation)
+    residual_dim: int = 25
+    residual_from: int = 5000          # stage 2 starts here (stage 1: SFP only)
+    mgrd_hidden: int = 64              # choose: hidden width of each MGRD head
+    # Progressive downsampling of the training view (equation 6)
+    schedule: str = "cosine"           # cosine | linear | none (fixed d_s until stage 2)
+    d_s: float = 0.7
+    d_e: float = 1.0
+    T: int = 9000
+    # learning rates
+    lr_residual: float = 0.0075
+    lr_grid_init: float = 0.005
+    lr_grid_final: float = 0.00001
+    lr_fusion_init: float = 0.004
+    lr_fusion_final: float = 0.00004
+    lr_mgrd_init: float = 0.004
+    lr_mgrd_final: float = 0.00004

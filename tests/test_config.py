@@ -1,0 +1,92 @@
+"""Config merge: defaults, patches in order, --set, errors naming key and source."""
+import pytest
+
+from baseline.config import (ConfigError, build_config, config_hash, from_toml, parse_set,
+                             to_toml)
+
+
+def write(tmp_path, name, text):
+    p = tmp_path / f"{name}.toml"
+    p.write_text(text)
+    return str(p)
+
+
+def test_defaults_are_paper_values():
+    cfg = build_config()
+    assert cfg.train.iterations == 30000
+    assert cfg.model.feat_dim == 50 and cfg.model.n_offsets == 10
+    assert cfg.entropy.lmbda == 0.004 and cfg.entropy.grid.log2_table_3d == 13
+    assert cfg.entropy.grid.resolutions_2d == [130, 258, 514, 1026]
+    assert cfg.lr.offset_init == 0.01 and cfg.lr.mlp_color_final == 5e-5
+
+
+def test_patches_apply_in_order_then_set(tmp_path):
+    a = write(tmp_path, "a", "[train]\niterations = 100\nseed = 3\n")
+    b = write(tmp_path, "b", "[train]\niterations = 200\n")
+    cfg = build_config([a, b])
+    assert cfg.train.iterations == 200 and cfg.train.seed == 3
+    cfg = build_config([b, a])
+    assert cfg.train.iterations == 100
+    cfg = build_config([a, b], ["train.iterations=7", "entropy.grid.auto=true"])
+    assert cfg.train.iterations == 7 and cfg.entropy.grid.auto is True
+    assert cfg.patches == [a, b]
+
+
+def test_named_patch_and_include():
+    cfg = build_config(["demo"])
+    assert cfg.train.rasterizer == "cpu"          # from the included cpu patch
+    assert cfg.train.iterations == 1500           # demo overrides cpu
+    assert cfg.patches == ["cpu", "demo"]
+
+
+def test_cpu_preset_scales_milestones():
+    cfg = build_config(["cpu"], ["train.iterations=3000"])
+    assert cfg.train.at(30000) == 3000
+    assert cfg.train.at(10000) == 1000 and cfg.train.at(500) == 50
+
+
+def test_unknown_key_names_key_and_patch(tmp_path):
+    p = write(tmp_path, "bad", "[train]\niteratons = 5\n")
+    with pytest.raises(ConfigError) as e:
+        build_config([p])
+    assert "train.iteratons" in str(e.value) and "bad.toml" in str(e.value)
+
+
+def test_unknown_section(tmp_path):
+    p = write(tmp_path, "bad2", "[trian]\niterations = 5\n")
+    with pytest.raises(ConfigError, match="unknown config section 'trian'.*bad2.toml"):
+        build_config([p])
+
+
+def test_type_mismatch_names_key_and_patch(tmp_path):
+    p = write(tmp_path, "bad3", '[train]\niterations = "many"\n')
+    with pytest.raises(ConfigError, match="'train.iterations' in patch .*bad3.toml.*integer"):
+        build_config([p])
+    p = write(tmp_path, "bad4", "[entropy.grid]\nresolutions_2d = [1, 2.5]\n")
+    with pytest.raises(ConfigError, match=r"resolutions_2d\[1\]"):
+        build_config([p])
+    with pytest.raises(ConfigError, match="train.seed.*--set"):
+        build_config([], ["train.seed=true"])
+
+
+def test_unknown_patch_lists_available():
+    with pytest.raises(ConfigError, match="available patches:.*cpu"):
+        build_config(["no-such-patch"])
+
+
+def test_int_accepted_for_float_and_roundtrip(tmp_path):
+    cfg = build_config([], ["entropy.lmbda=1", "codec.weight_dtype=float16"])
+    assert cfg.entropy.lmbda == 1.0 and isinstance(cfg.entropy.lmbda, float)
+    path = tmp_path / "config.toml"
+    path.write_text(to_toml(cfg))
+    again = from_toml(path)
+    assert config_hash(again) == config_hash(cfg)
+    assert config_hash(build_config()) != config_hash(cfg)
+
+
+def test_parse_set_errors():
+    with pytest.raises(ConfigError):
+        parse_set("novalue")
+    with pytest.raises(ConfigError):
+        parse_set("iterations=3")
+    assert parse_set("a.b.c=x") == {"a": {"b": {"c": "x"}}}
