@@ -23,12 +23,13 @@ def _unique_rows(a: torch.Tensor):
 
 
 def grow_anchors(model, grads: torch.Tensor, eligible: torch.Tensor, cfg, voxel_size: float,
-                 optimizer=None, generator: torch.Generator | None = None) -> int:
+                 optimizer=None, generator: torch.Generator | None = None, rand=None) -> int:
     """One Scaffold-GS growing step.
 
     Args:
         grads: [N*K] mean NDC gradient norm per neural Gaussian.
         eligible: [N*K] bool, Gaussians with enough statistics (count > interval * st * 0.5).
+        rand: optional ``rand(n) -> [n]`` uniform draws (tests pass a fixed one).
     Returns:
         number of anchors added.
     """
@@ -45,8 +46,8 @@ def grow_anchors(model, grads: torch.Tensor, eligible: torch.Tensor, cfg, voxel_
         thr = cfg.densify.grad_threshold * float((m.update_hierarchy_factor // 2) ** level)
         cand = (grads >= thr) & eligible
         keep_p = 0.5 ** (level + 1)
-        rand = torch.rand(N0 * K, generator=generator) > keep_p
-        cand = cand & rand
+        u = rand(N0 * K) if rand is not None else torch.rand(N0 * K, generator=generator)
+        cand = cand & (u > keep_p)
         size = voxel_size * (m.update_init_factor // (m.update_hierarchy_factor ** level))
         if size <= 0:
             continue

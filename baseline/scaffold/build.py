@@ -1,0 +1,33 @@
+"""Building a model and its entropy model from a config and a scene's points."""
+from __future__ import annotations
+
+import torch
+
+from baseline import registry
+from baseline.config import Config
+from baseline.scaffold.anchors import auto_voxel_size, init_log_scaling, voxelize
+from baseline.scaffold.model import AnchorModel
+
+
+def build_model(cfg: Config, points: torch.Tensor) -> tuple[AnchorModel, float]:
+    """Anchors from the scene's points; returns (model, voxel size)."""
+    if points.numel() == 0:
+        raise ValueError("the scene has no points to initialise anchors from")
+    v = cfg.model.voxel_size
+    if v <= 0:
+        v = auto_voxel_size(points)
+    xyz = voxelize(points, v)
+    log_scaling = init_log_scaling(xyz)
+    prov_cls = registry.get("feature_provider", cfg.model.feature_provider)
+    ref_cls = None if cfg.model.refiner in ("", "none") else registry.get("refiner", cfg.model.refiner)
+    model = AnchorModel(
+        xyz, log_scaling, cfg.model,
+        provider_factory=lambda m: prov_cls(m, cfg),
+        refiner_factory=(lambda m: ref_cls(m, cfg)) if ref_cls else None,
+        mask_threshold=cfg.entropy.mask_threshold)
+    return model, v
+
+
+def build_entropy(cfg: Config, model: AnchorModel):
+    cls = registry.get("entropy_model", cfg.entropy.model)
+    return cls.from_config(model.coded_attributes(), model.n_offsets, cfg)
