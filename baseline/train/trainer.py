@@ -140,6 +140,8 @@ class Trainer:
                 rate = bits / (res.n_rate_anchors * dims)
                 terms["bpp"] = float(rate)
             hb = self.entropy.hash_bits()
+            if hasattr(self.model.provider, "rate_bits"):   # e.g. Predict-GS's SFP grid
+                hb = hb + self.model.provider.rate_bits()
             if torch.is_tensor(hb):
                 rate = rate + hb / (self.model.n_anchors * dims)
             loss = loss + cfg.entropy.lmbda * rate

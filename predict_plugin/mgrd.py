@@ -1,0 +1,47 @@
+"""Multi-head Gaussian Residual Decoder (paper eq. 4): refiner ``mgrd``.
+
+Two heads, each a two-layer MLP with ReLU, input f_r + view direction (3) + distance (1):
+shape head -> K x 7 (delta scale 3, delta rotation 4), appearance head -> K x 4 (delta
+opacity 1, delta colour 3).
+
+Where the corrections enter (the paper leaves it open; SPEC.md says choose): in the
+pre-activation space of the decoder heads, i.e. refined opacity = tanh(raw_o + d_o), colour =
+sigmoid(raw_c + d_c), scale = s_anchor * sigmoid(raw_s + d_s), rotation = normalize(raw_r + d_r).
+This keeps every refined attribute in its valid range with no clamping, and makes a zero
+correction leave the predicted Gaussians exactly unchanged. The heads' last layers start at zero,
+so switching the residual branch on (stage 2) does not disturb the prediction learned in stage 1.
+"""
+from __future__ import annotations
+
+import torch
+import torch.nn as nn
+
+
+class MGRD(nn.Module):
+    def __init__(self, model, cfg):
+        super().__init__()
+        p = cfg.ext["predict"]
+        K = cfg.model.n_offsets
+        self.n_offsets = K
+        d_in = p.residual_dim + 3 + 1
+        h = p.mgrd_hidden
+        self.shape_head = nn.Sequential(nn.Linear(d_in, h), nn.ReLU(), nn.Linear(h, 7 * K))
+        self.appearance_head = nn.Sequential(nn.Linear(d_in, h), nn.ReLU(), nn.Linear(h, 4 * K))
+        for head in (self.shape_head, self.appearance_head):
+            nn.init.zeros_(head[2].weight)
+            nn.init.zeros_(head[2].bias)
+        self.active = False        # stage 1: residual branch off (set by the predict_stages hooks)
+
+    def forward(self, idx, values, view_dir, dist):
+        """values["residual"] [M,R], view_dir [M,3], dist [M,1] -> corrections:
+        opacity [M,K], cov [M,K,7] (scale 3 | rotation 4), color [M,K,3]."""
+        x = torch.cat([values["residual"], view_dir, dist], dim=-1)
+        K = self.n_offsets
+        shape = self.shape_head(x).view(-1, K, 7)
+        app = self.appearance_head(x).view(-1, K, 4)
+        return {"opacity": app[..., 0], "color": app[..., 1:4], "cov": shape}
+
+    def param_groups(self, cfg):
+        p = cfg.ext["predict"]
+        return [dict(name="mgrd", params=list(self.parameters()), lr_init=p.lr_mgrd_init,
+                     lr_final=p.lr_mgrd_final)]

@@ -1,0 +1,101 @@
+"""Spatial Feature Pool (paper section 3.2, appendix A.2): feature provider ``sfp``.
+
+f_c = F(I(H_xyz, H_xy, H_xz, H_yz; x)): the anchor position queries a binarized hash grid with
+HAC's layout (its own instance), the concatenated level features go through a two-layer fusion
+MLP to the 50-dim predicted feature that replaces the per-anchor feature as input of the
+unchanged decoder MLPs. Each anchor also carries a residual f_r (25 dims, zero for new anchors)
+that the MGRD refiner decodes; the entropy model codes f_r instead of the feature.
+
+Choices (documented): the SFP normalisation box is fixed at start from the initial anchors,
+widened by 10% of the extent per side, so that grown anchors still fall inside and the learned
+field is never re-indexed (a point outside reads zero features, as HAC's grid). The fusion hidden
+width (``predict.fusion_hidden``) is not given by the paper.
+
+Decoded models cache f_c for every anchor (:meth:`SpatialFeaturePool.build_cache`): it depends
+on the anchor position only, so rendering skips the grid query and the fusion MLP.
+"""
+from __future__ import annotations
+
+from typing import Optional
+
+import torch
+import torch.nn as nn
+
+from baseline.contracts import CodedAttribute
+from baseline.hac.hashgrid import BinaryHashGrid, auto_grid_layout
+from baseline.scaffold.model import grow_zeros
+
+
+def grid_from_config(gcfg, n_anchors: int, auto: bool) -> BinaryHashGrid:
+    if auto:
+        return BinaryHashGrid(**auto_grid_layout(n_anchors))
+    return BinaryHashGrid(resolutions_3d=gcfg.resolutions_3d, log2_table_3d=gcfg.log2_table_3d,
+                          resolutions_2d=gcfg.resolutions_2d, log2_table_2d=gcfg.log2_table_2d,
+                          n_features=gcfg.n_features)
+
+
+class SpatialFeaturePool(nn.Module):
+    def __init__(self, model, cfg):
+        super().__init__()
+        p = cfg.ext["predict"]
+        self.pcfg = p
+        self.feature_dim = cfg.model.feat_dim
+        self.n_offsets = cfg.model.n_offsets
+        self._model = [model]
+        self.grid = grid_from_config(cfg.entropy.grid, model.n_anchors, p.grid_auto)
+        xyz = model.xyz.detach()
+        lo, hi = xyz.min(0).values, xyz.max(0).values
+        margin = 0.1 * (hi - lo).clamp_min(1e-6)
+        self.grid.set_bounds(lo - margin, hi + margin)
+        self.fusion = nn.Sequential(nn.Linear(self.grid.output_dim, p.fusion_hidden), nn.ReLU(),
+                                    nn.Linear(p.fusion_hidden, self.feature_dim))
+        self.use_residual = bool(p.residual) and p.residual_dim > 0
+        if self.use_residual:
+            model.add_per_anchor("residual", torch.zeros(model.n_anchors, p.residual_dim), grow_zeros)
+        self._cache: Optional[torch.Tensor] = None
+
+    # ------------------------------------------------------------------- provider contract
+    def coded_attributes(self):
+        attrs = []
+        if self.use_residual:
+            attrs.append(CodedAttribute("residual", self.pcfg.residual_dim, 1.0))
+        attrs += [CodedAttribute("scaling", 6, 0.001),
+                  CodedAttribute("offsets", 3 * self.n_offsets, 0.2, masked=True)]
+        return tuple(attrs)
+
+    def coded_values(self, idx):
+        if not self.use_residual:
+            return {}
+        return {"residual": self._model[0].per_anchor["residual"][idx]}
+
+    def predict(self, xyz: torch.Tensor) -> torch.Tensor:
+        """[M,3] positions -> [M, 50] predicted features f_c."""
+        return self.fusion(self.grid(xyz))
+
+    def decoder_features(self, idx, values, xyz):
+        if self._cache is not None:
+            return self._cache[idx]
+        return self.predict(xyz)
+
+    @torch.no_grad()
+    def build_cache(self, xyz_all: torch.Tensor) -> None:
+        """Precompute f_c of every anchor (decoded models: positions are fixed)."""
+        self._cache = self.predict(xyz_all)
+
+    def clear_cache(self) -> None:
+        self._cache = None
+
+    def rate_bits(self) -> torch.Tensor:
+        """The SFP's hash bits, added to the rate loss (paper eq. 8: L_entropy includes the SFP)."""
+        return self.grid.hash_bits()
+
+    def param_groups(self, cfg):
+        p = cfg.ext["predict"]
+        groups = [dict(name="sfp_grid", params=list(self.grid.parameters()),
+                       lr_init=p.lr_grid_init, lr_final=p.lr_grid_final),
+                  dict(name="sfp_fusion", params=list(self.fusion.parameters()),
+                       lr_init=p.lr_fusion_init, lr_final=p.lr_fusion_final)]
+        if self.use_residual:
+            groups.append(dict(name="residual", params=[self._model[0].per_anchor["residual"]],
+                               lr_init=p.lr_residual, lr_final=p.lr_residual))
+        return groups
