@@ -1,0 +1,108 @@
+"""Predict-GS plugin: schedule values (eq. 6), stage switching, SFP, zero-correction identity."""
+import math
+from types import SimpleNamespace
+
+import pytest
+import torch
+
+from baseline.config import build_config
+from baseline.scaffold.build import build_model
+from predict_plugin.schedule import downsample_scale
+
+
+def test_cosine_schedule_eq6_values():
+    T = 9000
+    assert downsample_scale(0, "cosine", 0.7, 1.0, T) == pytest.approx(0.7)
+    assert downsample_scale(T // 2, "cosine", 0.7, 1.0, T) == pytest.approx(0.85)
+    assert downsample_scale(T, "cosine", 0.7, 1.0, T) == pytest.approx(1.0)
+    assert downsample_scale(T + 100, "cosine", 0.7, 1.0, T) == 1.0
+    t = 2000
+    want = 1.0 + 0.5 * (0.7 - 1.0) * (1 + math.cos(math.pi * t / T))
+    assert downsample_scale(t, "cosine", 0.7, 1.0, T) == pytest.approx(want)
+
+
+def test_linear_and_none_schedules():
+    assert downsample_scale(4500, "linear", 0.7, 1.0, 9000) == pytest.approx(0.85)
+    assert downsample_scale(10, "none", 0.7, 1.0, 9000, stage2_from=5000) == 0.7
+    assert downsample_scale(5000, "none", 0.7, 1.0, 9000, stage2_from=5000) == 1.0
+    with pytest.raises(ValueError, match="unknown progressive schedule"):
+        downsample_scale(0, "cubic", 0.7, 1.0, 9000)
+
+
+def _pgs_cfg(*sets):
+    return build_config(["predict-gs"], list(sets))
+
+
+def _pgs_model(cfg, n=300, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    pts = torch.rand(n, 3, generator=g) * 2 - 1
+    model, _ = build_model(cfg, pts)
+    return model
+
+
+def test_sfp_declares_residual_instead_of_feat():
+    cfg = _pgs_cfg("model.voxel_size=0.2")
+    model = _pgs_model(cfg)
+    names = [(a.name, a.dims, a.q0, a.masked) for a in model.coded_attributes()]
+    assert names == [("residual", 25, 1.0, False), ("scaling", 6, 0.001, False),
+                     ("offsets", 30, 0.2, True)]
+    assert "feat" not in model.per_anchor and model.per_anchor["residual"].shape[1] == 25
+    cfg2 = _pgs_cfg("model.voxel_size=0.2", "predict.residual_dim=10")
+    assert _pgs_model(cfg2).per_anchor["residual"].shape[1] == 10
+
+
+def test_sfp_output_shape_and_gradient_reaches_hash_params():
+    cfg = _pgs_cfg("model.voxel_size=0.2")
+    model = _pgs_model(cfg)
+    sfp = model.provider
+    idx = torch.arange(model.n_anchors)
+    f = sfp.decoder_features(idx, {}, model.xyz[idx])
+    assert f.shape == (model.n_anchors, 50)
+    f.square().sum().backward()
+    grads = [p.grad for p in sfp.grid.parameters()]
+    assert all(g is not None for g in grads)
+    assert sum(float(g.abs().sum()) for g in grads) > 0, "no gradient through the binarization STE"
+
+
+def test_zero_correction_leaves_prediction_unchanged():
+    cfg = _pgs_cfg("model.voxel_size=0.2")
+    model = _pgs_model(cfg)
+    with torch.no_grad():
+        model.per_anchor["residual"].normal_()
+    idx = torch.arange(model.n_anchors)
+    cam = torch.tensor([0.0, 0.0, -4.0])
+    model.refiner.active = False
+    g0 = model.decode(cam, idx)
+    model.refiner.active = True          # zero-initialised last layers: corrections are zero
+    g1 = model.decode(cam, idx)
+    for a in ("means", "quats", "scales", "opacities", "colors"):
+        assert torch.equal(getattr(g0, a), getattr(g1, a)), a
+    with torch.no_grad():                 # a non-zero correction changes the Gaussians
+        model.refiner.appearance_head[2].bias.fill_(0.5)
+    g2 = model.decode(cam, idx)
+    assert not torch.equal(g0.colors, g2.colors[: len(g0.colors)]) or len(g2.colors) != len(g0.colors)
+
+
+def test_stage_switch_and_resolution_hook():
+    from predict_plugin.hooks import PredictStages
+
+    cfg = _pgs_cfg("model.voxel_size=0.2", "train.iterations=300")
+    model = _pgs_model(cfg)
+    t = SimpleNamespace(cfg=cfg, model=model, render_scale=1.0)
+    hook = PredictStages(t)
+    assert hook.residual_from == 50 and hook.T == 90     # 5k and 9k of 30k, scaled to 300
+    hook.before_step(50)
+    assert model.refiner.active is False and t.render_scale == pytest.approx(
+        downsample_scale(50, "cosine", 0.7, 1.0, 90))
+    hook.before_step(51)
+    assert model.refiner.active is True
+    hook.before_step(0)
+    assert t.render_scale == pytest.approx(0.7)
+    hook.before_step(90)
+    assert t.render_scale == pytest.approx(1.0)
+
+
+def test_baseline_config_unchanged_by_plugin():
+    cfg = build_config()
+    assert cfg.model.feature_provider == "explicit" and cfg.model.refiner == "none"
+    assert "predict_stages" not in cfg.train.hooks
