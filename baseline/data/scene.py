@@ -49,8 +49,18 @@ MAX_DEFAULT_WIDTH = 1600
 
 
 @dataclass(frozen=True)
-class _Recipe:
-    """How to make the cached image of one view from its source file."""
+class ViewSource:
+    """Where a view's image comes from and how its cached image is made.
+
+    Attributes:
+        name: the view's image name.
+        path: the source image file.
+        source: the capture camera (model, calibration size, parameters).
+        pinhole: (fx, fy, cx, cy) of the undistorted camera in calibration pixels.
+        file_size: (w, h) of the source file.
+        size: (w, h) of the loaded (cached) image.
+        cache_file: the cached uint8 PNG.
+    """
 
     name: str
     path: Path
@@ -76,7 +86,7 @@ class _Recipe:
 class _ImageStore:
     """The on-disk cache of a scene's images: one PNG per view, written atomically."""
 
-    def __init__(self, recipes: dict[int, _Recipe]):
+    def __init__(self, recipes: dict[int, ViewSource]):
         self.recipes = recipes
 
     def ensure(self, idx: int) -> Path:
@@ -127,6 +137,14 @@ class Scene:
     protocol: dict
     _store: _ImageStore = field(repr=False)
 
+    def view_source(self, camera: Camera) -> ViewSource:
+        """The source file, capture camera and undistortion of one of this scene's views."""
+        r = self._store.recipes.get(camera.index)
+        if r is None or r.name != camera.name:
+            raise KeyError(f"camera {camera.name!r} (index {camera.index}) is not a view of "
+                           f"scene {self.name}")
+        return r
+
     @property
     def cameras(self) -> list[Camera]:
         """All views, train and test, in index order."""
@@ -139,10 +157,7 @@ class Scene:
         sources are composited on ``background``. ``camera`` must be one of this scene's views
         at its loaded size (use the trainer's own resampling for other sizes).
         """
-        r = self._store.recipes.get(camera.index)
-        if r is None or r.name != camera.name:
-            raise KeyError(f"camera {camera.name!r} (index {camera.index}) is not a view of "
-                           f"scene {self.name}")
+        r = self.view_source(camera)
         if (camera.width, camera.height) != r.size:
             raise ValueError(f"camera {camera.name!r} is {camera.width}x{camera.height} but the "
                              f"scene's image is {r.size[0]}x{r.size[1]}; resample the image "
@@ -292,7 +307,7 @@ def load_scene(path: str | os.PathLike, resolution: int = -1, images: str | None
     scene_dir = cache_root / f"{_safe(path.name)}-{hashlib.sha1(str(path).encode()).hexdigest()[:8]}"
     extra = res.info.get("folder_downscale")
     pinholes: dict[SourceCamera, tuple] = {}
-    recipes: dict[int, _Recipe] = {}
+    recipes: dict[int, ViewSource] = {}
     train, test = [], []
     models: dict[str, int] = {}
     for idx, (v, t) in enumerate(zip(views, is_test)):
@@ -306,7 +321,7 @@ def load_scene(path: str | os.PathLike, resolution: int = -1, images: str | None
         models[v.source.model] = models.get(v.source.model, 0) + 1
         key = _cache_key(v, pinholes[v.source], fsize, size, undistort)
         sub = scene_dir / f"{size[0]}x{size[1]}"
-        recipes[idx] = _Recipe(v.name, v.path, v.source, pinholes[v.source], fsize, size,
+        recipes[idx] = ViewSource(v.name, v.path, v.source, pinholes[v.source], fsize, size,
                                sub / f"{_safe(v.name)}-{key}.png")
         cam = Camera(viewmat=torch.from_numpy(v.w2c).float(), fx=fx * sx, fy=fy * sy,
                      cx=cx * sx, cy=cy * sy, width=size[0], height=size[1], name=v.name,
