@@ -148,6 +148,14 @@ def test_lego(tmp_path):
     assert torch.all(ib[0, 0] == 0) and torch.all(iw[0, 0] == 1)
     assert float((iw - ib).min()) >= -1e-6          # white bg only adds (1 - alpha)
     assert black.protocol["split"].startswith("from transforms_train")
+    # full size, semi-transparent edges: straight colour from the file over the background
+    wf = load("nerf_synthetic_lego", tmp_path, background=(1.0, 1.0, 1.0))
+    cf = wf.test_cameras[0]
+    raw = read_image(wf.view_source(cf).path)
+    a = raw[..., 3:]
+    assert ((a > 0) & (a < 1)).sum() > 1000
+    expect = raw[..., :3] * a + (1 - a)
+    assert np.abs(wf.image(cf).numpy() - expect).max() <= 0.5 / 255 + 1e-6
     noeval = load("nerf_synthetic_lego", tmp_path, resolution=8, eval=False)
     assert len(noeval.train_cameras) == 125 and not noeval.test_cameras
 

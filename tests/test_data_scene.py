@@ -174,10 +174,11 @@ def _c2w_opengl(cam) -> list:
 
 
 def _rgba(src, dst):
-    """Copy a PNG adding an alpha channel: transparent top-left quarter."""
+    """Copy a PNG adding an alpha channel: top-left quarter transparent, top-right 100/255."""
     img = read_png_u8(src)
     a = np.full(img.shape[:2] + (1,), 255, np.uint8)
     a[: img.shape[0] // 2, : img.shape[1] // 2] = 0
+    a[: img.shape[0] // 2, img.shape[1] // 2:] = 100
     write_png_atomic(dst, np.concatenate([img, a], axis=2))
 
 
@@ -206,6 +207,14 @@ def test_blender_split_files_and_rgba(syn, tmp_path):
     img, rimg = s.image(c), ref.image(r)
     assert torch.all(img[: H // 2, : W // 2] == torch.tensor([1.0, 0.0, 0.0]))
     assert torch.equal(img[H // 2:], rimg[H // 2:])
+    # semi-transparent: straight colour c (as in the file) over the background, a = 100/255
+    a, bg = 100 / 255, torch.tensor([1.0, 0.0, 0.0])
+    expect = rimg[: H // 2, W // 2:] * a + (1 - a) * bg
+    assert float((img[: H // 2, W // 2:] - expect).abs().max()) <= 0.5 / 255 + 1e-6
+    half = load_scene(bl, cache_dir=tmp_path / "c", resolution=2, background=(1.0, 0.0, 0.0))
+    # resized (premultiplied area average): the 2x2 block mean of the full-size composite
+    full = s.image(s.train_cameras[2]).numpy().reshape(H // 2, 2, W // 2, 2, 3).mean(axis=(1, 3))
+    assert np.abs(half.image(half.train_cameras[2]).numpy() - full).max() <= 1.01 / 255
     # seeded random init
     s_b = load_scene(bl, cache_dir=tmp_path / "c", seed=1, random_init_points=50, prefetch=False)
     s_a = load_scene(bl, cache_dir=tmp_path / "c", seed=1, random_init_points=50, prefetch=False)

@@ -8,6 +8,9 @@ Conventions used throughout the data layer:
 * The cache stores uint8 PNGs. RGBA images are stored with *premultiplied* colour, so that
   resampling is correct at alpha edges and compositing on any background is one linear step
   (``rgb + (1 - a) * background``) done when the image is read back.
+* OpenImageIO by default converts alpha images to premultiplied ("associated") colour on read
+  and back on write. We turn that off (``oiio:UnassociatedAlpha = 1``) on every read and write,
+  so arrays hold exactly the file's values and the premultiplication is ours, done once.
 """
 from __future__ import annotations
 
@@ -24,10 +27,17 @@ from .errors import SceneError
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".exr", ".bmp")
 
 
+def _raw_alpha_spec() -> "oiio.ImageSpec":
+    """An open/write configuration that keeps alpha and colour as stored (no premultiplying)."""
+    spec = oiio.ImageSpec()
+    spec.attribute("oiio:UnassociatedAlpha", 1)
+    return spec
+
+
 def _open(path: Path) -> "oiio.ImageInput":
     if not Path(path).is_file():
         raise SceneError(f"image file not found: {path}")
-    inp = oiio.ImageInput.open(str(path))
+    inp = oiio.ImageInput.open(str(path), _raw_alpha_spec())
     if inp is None:
         raise SceneError(f"cannot read image {path}: {oiio.geterror() or 'unknown format'} "
                          "(the file is corrupt or not an image; replace or remove it)")
@@ -158,7 +168,9 @@ def write_png_atomic(path: str | Path, img_u8: np.ndarray) -> None:
     try:
         h, w, c = img_u8.shape
         out = oiio.ImageOutput.create(tmp)
-        if out is None or not out.open(tmp, oiio.ImageSpec(w, h, c, "uint8")):
+        spec = oiio.ImageSpec(w, h, c, "uint8")
+        spec.attribute("oiio:UnassociatedAlpha", 1)          # write the values as given
+        if out is None or not out.open(tmp, spec):
             raise OSError(f"cannot write {tmp}: {oiio.geterror()}")
         ok = out.write_image(np.ascontiguousarray(img_u8))
         out.close()
@@ -172,8 +184,8 @@ def write_png_atomic(path: str | Path, img_u8: np.ndarray) -> None:
 
 
 def read_png_u8(path: str | Path) -> np.ndarray:
-    """Read a cached uint8 PNG as ``[H, W, C]`` uint8."""
-    inp = oiio.ImageInput.open(str(path))
+    """Read a cached uint8 PNG as ``[H, W, C]`` uint8 (values as stored)."""
+    inp = oiio.ImageInput.open(str(path), _raw_alpha_spec())
     if inp is None:
         raise OSError(f"cannot read cached image {path}: {oiio.geterror()}")
     try:
