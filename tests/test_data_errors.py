@@ -138,6 +138,7 @@ def _blender(tmp_path, meta_extra=None, frame_file="./train/r_0"):
     return d
 
 
+@pytest.mark.filterwarnings("ignore:all training cameras share one centre")
 def test_blender_errors(tmp_path):
     d = _blender(tmp_path / "a", frame_file="./train/r_9")
     with pytest.raises(SceneError) as e:

@@ -222,17 +222,7 @@ def test_blender_split_files_and_rgba(syn, tmp_path):
     assert not torch.equal(s_a.points, s.points[:50])
 
 
-def test_distorted_capture_is_undistorted(tmp_path):
-    """Images rendered *through* an OPENCV model (one camera per view), then undistorted by the
-    loader, match a pinhole rendering with the loader's intrinsics far better than the raw
-    images do. Also read as instant-ngp transforms.json with k1, k2, p1, p2: same result."""
-    dist = (0.08, -0.02, 0.002, -0.001)
-    out = make_scene(tmp_path / "d", n_views=3, width=160, height=120, seed=2, n_points=100,
-                     texture_detail=0.5, camera_model="OPENCV", distortion=dist,
-                     shared_camera=False)
-    world = World(2, 0.5)
-    s = load_scene(out, cache_dir=tmp_path / "c", eval=False)
-    assert s.protocol["camera_models"] == {"OPENCV": 3} and s.protocol["undistort"] == "crop"
+def _check_undistorted(s, world):
     for cam in s.cameras:
         pin = pycolmap.Camera(model="PINHOLE", width=cam.width, height=cam.height,
                               params=[cam.fx, cam.fy, cam.cx, cam.cy])
@@ -240,6 +230,55 @@ def test_distorted_capture_is_undistorted(tmp_path):
         got = s.image(cam).numpy()
         raw = read_png_u8(s.view_source(cam).path) / 255.0
         assert psnr(got, ref) > 33 and psnr(got, ref) > psnr(raw, ref) + 4
+
+
+@pytest.mark.parametrize("model,dist", [("SIMPLE_RADIAL", (0.1,)), ("RADIAL", (0.06, 0.02))])
+def test_radial_captures_are_undistorted(tmp_path, model, dist):
+    """Images rendered *through* a distorted model, then undistorted by the loader, match a
+    pinhole rendering with the loader's intrinsics far better than the raw images do."""
+    out = make_scene(tmp_path / "d", n_views=2, width=160, height=120, seed=4, n_points=50,
+                     texture_detail=0.5, camera_model=model, distortion=dist)
+    s = load_scene(out, cache_dir=tmp_path / "c", eval=False)
+    assert s.protocol["camera_models"] == {model: 2}
+    _check_undistorted(s, World(4, 0.5))
+
+
+@pytest.mark.parametrize("model", ["SIMPLE_PINHOLE", "PINHOLE"])
+def test_pinhole_models_are_not_resampled(tmp_path, model):
+    out = make_scene(tmp_path / "p", n_views=2, width=40, height=30, n_points=50,
+                     camera_model=model)
+    s = load_scene(out, cache_dir=tmp_path / "c", eval=False)
+    assert s.protocol["undistort"] is None
+    c = s.cameras[1]
+    f = 0.5 * 40 / np.tan(np.radians(55) / 2)
+    assert (c.fx, c.fy, c.cx, c.cy) == pytest.approx((f, f, 20, 15))
+    assert np.array_equal(u8(s.image(c)), read_png_u8(out / "images" / c.name))
+
+
+def test_width_capped_at_1600(tmp_path):
+    out = make_scene(tmp_path / "w", n_views=2, width=1700, height=40, n_points=20,
+                     texture_detail=0.0)
+    s = load_scene(out, cache_dir=tmp_path / "c", eval=False)
+    c = s.cameras[0]
+    assert (c.width, c.height) == (1600, 38)                 # round(40 * 1600 / 1700)
+    f = 0.5 * 1700 / np.tan(np.radians(55) / 2)
+    assert (c.fx, c.fy, c.cx, c.cy) == pytest.approx((f * 1600 / 1700, f * 38 / 40, 800, 19))
+    assert s.image(c).shape == (38, 1600, 3)
+    r1 = load_scene(out, cache_dir=tmp_path / "c", eval=False, resolution=1, prefetch=False)
+    assert r1.cameras[0].width == 1700
+
+
+def test_distorted_capture_is_undistorted(tmp_path):
+    """An OPENCV capture with one camera per view, undistorted by the loader, matches a pinhole
+    rendering (see above). Also read as an instant-ngp transforms.json with k1, k2, p1, p2:
+    the same cameras and images."""
+    dist = (0.08, -0.02, 0.002, -0.001)
+    out = make_scene(tmp_path / "d", n_views=3, width=160, height=120, seed=2, n_points=100,
+                     texture_detail=0.5, camera_model="OPENCV", distortion=dist,
+                     shared_camera=False)
+    s = load_scene(out, cache_dir=tmp_path / "c", eval=False)
+    assert s.protocol["camera_models"] == {"OPENCV": 3} and s.protocol["undistort"] == "crop"
+    _check_undistorted(s, World(2, 0.5))
 
     # the same capture as an instant-ngp transforms.json (single file: every-8th split)
     rec = pycolmap.Reconstruction(str(out / "sparse" / "0"))
