@@ -196,10 +196,10 @@ def _check_aspect(rec: ViewRecord, size: tuple[int, int]) -> None:
     sx, sy = w / W, h / H
     # a downscaled folder rounds each side to whole pixels: allow one pixel of slack per side
     if abs(sx * H - h) > 1.0 + 1e-9 or abs(sy * W - w) > 1.0 + 1e-9:
-        raise SceneError(f"{rec.path}: image is {w}x{h} but its camera "
-                         f"{rec.source.camera_id if rec.source.camera_id is not None else ''} "
-                         f"is calibrated for {W}x{H} (different aspect ratio: rotated or cropped "
-                         "image?)")
+        cid = f" (camera id {rec.source.camera_id})" if rec.source.camera_id is not None else ""
+        raise SceneError(f"{rec.path}: image is {w}x{h} but its camera{cid} is calibrated for "
+                         f"{W}x{H}, a different aspect ratio (rotated or cropped image?); "
+                         "restore the original image or recalibrate")
 
 
 def _default_cache_root(path: Path) -> Path:
