@@ -1,0 +1,316 @@
+"""Format readers: COLMAP (via pycolmap) and Blender / instant-ngp ``transforms*.json``.
+
+Each reader turns a scene folder into a list of :class:`ViewRecord` (image file, capture camera,
+OpenCV world-to-camera pose) plus an initial point cloud. Everything about image sizes,
+undistortion, caching and the train/test split is done by :mod:`baseline.data.scene`.
+"""
+from __future__ import annotations
+
+import json
+import math
+import re
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+
+from .errors import SceneError
+from .images import IMAGE_EXTENSIONS
+from .undistort import SourceCamera, check_supported
+
+LAYOUTS = ("COLMAP: sparse/0/ (or sparse/) holding cameras, images and points3D as .bin or .txt, "
+           "with the images in images/ or images_N/",
+           "Blender / instant-ngp: transforms_train.json + transforms_test.json, or transforms.json")
+
+
+@dataclass(frozen=True)
+class ViewRecord:
+    """One view as read from disk, before any resizing.
+
+    Attributes:
+        name: image name (sort key, ``Camera.name``).
+        path: the image file.
+        source: the capture camera at its calibration size.
+        w2c: [4, 4] float64 world-to-camera matrix, OpenCV axes.
+        split: "train" / "test" when the format fixes it, else None.
+    """
+
+    name: str
+    path: Path
+    source: SourceCamera
+    w2c: np.ndarray = field(repr=False)
+    split: str | None = None
+
+
+@dataclass
+class ReaderResult:
+    fmt: str
+    views: list[ViewRecord]
+    points: np.ndarray | None      # [P, 3] float64, None -> random init
+    colors: np.ndarray | None      # [P, 3] float in [0, 1]
+    info: dict
+
+
+def unknown_layout(path: Path) -> SceneError:
+    return SceneError(f"{path}: not a recognized scene folder. Accepted layouts:\n  - "
+                      + "\n  - ".join(LAYOUTS))
+
+
+def detect_format(path: Path) -> str:
+    """'colmap' or 'blender' for a scene folder, else :class:`SceneError`."""
+    if not path.exists():
+        raise SceneError(f"{path}: scene folder does not exist")
+    if not path.is_dir():
+        raise SceneError(f"{path}: not a folder. Accepted layouts:\n  - " + "\n  - ".join(LAYOUTS))
+    if colmap_model_dir(path) is not None:
+        return "colmap"
+    if any(path.glob("transforms*.json")):
+        return "blender"
+    raise unknown_layout(path)
+
+
+# --------------------------------------------------------------------------------------- COLMAP
+def colmap_model_dir(path: Path) -> Path | None:
+    for d in (path / "sparse" / "0", path / "sparse"):
+        if (d / "cameras.bin").is_file() or (d / "cameras.txt").is_file():
+            return d
+    return None
+
+
+def _model_file(d: Path, stem: str) -> Path | None:
+    for ext in (".bin", ".txt"):
+        if (d / (stem + ext)).is_file():
+            return d / (stem + ext)
+    return None
+
+
+def image_folders(path: Path) -> dict[int, Path]:
+    """{downscale N: folder} for images/ (N = 1) and images_N/ folders of a COLMAP scene."""
+    out = {}
+    if (path / "images").is_dir():
+        out[1] = path / "images"
+    for d in path.iterdir():
+        m = re.fullmatch(r"images_(\d+)", d.name)
+        if m and d.is_dir() and int(m.group(1)) > 0:
+            out[int(m.group(1))] = d
+    return out
+
+
+def choose_image_folder(path: Path, images: str | None, resolution: int) -> tuple[Path, float | None]:
+    """The folder to read and the extra downscale factor still to apply (None: use the rule).
+
+    Rules (COLMAP): an explicit ``images`` folder is used as is and ``resolution`` applies to its
+    images. Otherwise, for ``resolution`` r in (1, 2, 4, 8): ``images_r/`` when it exists, else
+    the folder with the largest N dividing r (``images/`` is N = 1), downscaled by r / N; for -1
+    or a target width: ``images/``, or the highest-resolution ``images_N/`` when there is none.
+    """
+    if images is not None:
+        folder = Path(images) if Path(images).is_absolute() else path / images
+        if not folder.is_dir():
+            avail = sorted(p.name for p in image_folders(path).values())
+            raise SceneError(f"{folder}: image folder not found (available: {avail or 'none'})")
+        return folder, None
+    folders = image_folders(path)
+    if not folders:
+        raise SceneError(f"{path}: no images/ or images_N/ folder next to the COLMAP model")
+    if resolution in (1, 2, 4, 8):
+        divisors = [n for n in folders if resolution % n == 0]
+        if not divisors:
+            raise SceneError(
+                f"{path}: resolution {resolution} needs images/ or images_N/ with N dividing "
+                f"{resolution}; found only {sorted(f.name for f in folders.values())}. Pass "
+                "images=<folder> (and a resolution relative to it) instead.")
+        n = max(divisors)
+        return folders[n], float(resolution // n)
+    return folders[min(folders)], None
+
+
+def _resolve_image_files(folder: Path, names: list[str], model_file: Path) -> tuple[list[Path], str]:
+    """File path of each model image name; fall back to a sorted-order mapping (LLFF style)."""
+    def find(name: str) -> Path | None:
+        p = folder / name
+        if p.is_file():
+            return p
+        stem = folder / Path(name).with_suffix("")
+        for ext in IMAGE_EXTENSIONS:
+            for e in (ext, ext.upper()):
+                q = stem.with_suffix(e)
+                if q.is_file():
+                    return q
+        return None
+
+    found = [find(n) for n in names]
+    if all(f is not None for f in found):
+        return found, "by name"
+    files = sorted(p for p in folder.iterdir()
+                   if p.is_file() and p.suffix.lower() in IMAGE_EXTENSIONS)
+    if all(f is None for f in found) and len(files) == len(names):
+        # LLFF-style folders rename the images (image000.png in the model, IMG_4026.png on disk):
+        # with none matching and the counts equal, pair them in sorted order.
+        order = sorted(range(len(names)), key=lambda i: names[i])
+        out: list[Path] = [None] * len(names)  # type: ignore[list-item]
+        for f, i in zip(files, order):
+            out[i] = f
+        warnings.warn(f"{folder}: no file matches the image names of {model_file}; pairing the "
+                      f"{len(files)} files with the model's images in sorted order", stacklevel=3)
+        return out, "by sorted order (model names not found in the folder)"
+    missing = names[[f is None for f in found].index(True)]
+    raise SceneError(f"{folder / missing}: image file referenced by {model_file} not found "
+                     f"({sum(f is None for f in found)} of {len(names)} missing). Restore the file, "
+                     "or remove the image from the model.")
+
+
+def read_colmap(path: Path, images: str | None, resolution: int) -> ReaderResult:
+    model_dir = colmap_model_dir(path)
+    assert model_dir is not None
+    files = {s: _model_file(model_dir, s) for s in ("cameras", "images", "points3D")}
+    missing = [s for s, f in files.items() if f is None]
+    if missing:
+        raise SceneError(f"{model_dir}: incomplete COLMAP model, missing "
+                         + ", ".join(f"{s}.bin/.txt" for s in missing))
+    try:
+        rec = pycolmap.Reconstruction(str(model_dir))
+    except Exception as e:  # pycolmap raises assorted errors for broken files
+        raise SceneError(f"{model_dir}: cannot read the COLMAP model: {e}") from e
+
+    folder, extra = choose_image_folder(path, images, resolution)
+    imgs = [im for im in rec.images.values() if im.has_pose]
+    if len(imgs) < len(rec.images):
+        warnings.warn(f"{files['images']}: {len(rec.images) - len(imgs)} unregistered images "
+                      "skipped", stacklevel=2)
+    if not imgs:
+        raise SceneError(f"{files['images']}: the model has no registered images")
+    sources: dict[int, SourceCamera] = {}
+    for im in imgs:
+        if im.camera_id not in sources:
+            src = SourceCamera.from_pycolmap(rec.cameras[im.camera_id], camera_id=im.camera_id)
+            check_supported(src, str(files["cameras"]))
+            sources[im.camera_id] = src
+    names = [im.name for im in imgs]
+    paths, mapping = _resolve_image_files(folder, names, files["images"])
+
+    views = []
+    for im, p in zip(imgs, paths):
+        w2c = np.eye(4)
+        w2c[:3, :4] = np.asarray(im.cam_from_world().matrix(), dtype=np.float64)
+        views.append(ViewRecord(name=im.name, path=p, source=sources[im.camera_id], w2c=w2c))
+
+    pts = rec.points3D
+    if len(pts) == 0:
+        raise SceneError(f"{files['points3D']}: the point cloud is empty (0 points). Anchors are "
+                         "initialised from SfM points: triangulate the model first (e.g. "
+                         "`colmap point_triangulator`), or convert the scene to a "
+                         "transforms.json layout to start from random points.")
+    xyz = np.empty((len(pts), 3), dtype=np.float64)
+    rgb = np.empty((len(pts), 3), dtype=np.float64)
+    for k, p in enumerate(pts.values()):
+        xyz[k] = p.xyz
+        rgb[k] = p.color
+    info = {"image_folder": folder.name, "folder_downscale": extra, "name_mapping": mapping,
+            "model": str(model_dir)}
+    return ReaderResult("colmap", views, xyz, rgb / 255.0, info)
+
+
+# -------------------------------------------------------------------------------------- Blender
+_DIST_KEYS = ("k1", "k2", "p1", "p2")
+_UNSUPPORTED_DIST_KEYS = ("k3", "k4", "k5", "k6")
+
+
+def _frame_image(json_path: Path, file_path: str) -> Path:
+    p = (json_path.parent / file_path)
+    if p.is_file() and p.suffix.lower() in IMAGE_EXTENSIONS:
+        return p
+    for ext in IMAGE_EXTENSIONS:
+        for e in (ext, ext.upper()):
+            q = Path(str(p) + e)
+            if q.is_file():
+                return q
+    raise SceneError(f"{p}: image file referenced by {json_path} not found (tried the name as "
+                     f"given and with extensions {', '.join(IMAGE_EXTENSIONS)})")
+
+
+def _blender_camera(json_path: Path, meta: dict, size: tuple[int, int]) -> SourceCamera:
+    w, h = size
+    if meta.get("is_fisheye") or meta.get("camera_model", "").upper() not in ("", "OPENCV",
+                                                                               "PINHOLE"):
+        model = meta.get("camera_model") or "fisheye"
+        raise SceneError(f"{json_path}: camera model {model} is not supported (supported: "
+                         "pinhole with optional k1, k2, p1, p2 distortion)")
+    if "fl_x" in meta:
+        W0, H0 = int(meta.get("w", w)), int(meta.get("h", h))
+        fx = float(meta["fl_x"])
+        fy = float(meta.get("fl_y", fx))
+        cx, cy = float(meta.get("cx", W0 / 2)), float(meta.get("cy", H0 / 2))
+    elif "camera_angle_x" in meta:
+        W0, H0 = w, h
+        fx = 0.5 * W0 / math.tan(0.5 * float(meta["camera_angle_x"]))
+        fy = 0.5 * H0 / math.tan(0.5 * float(meta["camera_angle_y"])) \
+            if "camera_angle_y" in meta else fx
+        cx, cy = W0 / 2, H0 / 2
+    else:
+        raise SceneError(f"{json_path}: no intrinsics: expected camera_angle_x or fl_x (+ fl_y, "
+                         "cx, cy, w, h)")
+    bad = [k for k in _UNSUPPORTED_DIST_KEYS if float(meta.get(k, 0.0)) != 0.0]
+    if bad:
+        raise SceneError(f"{json_path}: distortion terms {bad} are not supported (supported: "
+                         "k1, k2, p1, p2); undistort the images first")
+    dist = [float(meta.get(k, 0.0)) for k in _DIST_KEYS]
+    if any(dist):
+        return SourceCamera("OPENCV", W0, H0, (fx, fy, cx, cy, *dist))
+    return SourceCamera("PINHOLE", W0, H0, (fx, fy, cx, cy))
+
+
+def _read_transforms(json_path: Path, split: str | None) -> list[ViewRecord]:
+    from .images import image_size
+    try:
+        meta = json.loads(json_path.read_text())
+    except (OSError, ValueError) as e:
+        raise SceneError(f"{json_path}: cannot parse: {e}") from e
+    frames = meta.get("frames")
+    if not isinstance(frames, list):
+        raise SceneError(f"{json_path}: no 'frames' list")
+    top = {k: v for k, v in meta.items() if k != "frames"}
+    views = []
+    for fr in frames:
+        if "file_path" not in fr or "transform_matrix" not in fr:
+            raise SceneError(f"{json_path}: a frame lacks file_path or transform_matrix")
+        p = _frame_image(json_path, fr["file_path"])
+        src = _blender_camera(json_path, {**top, **fr}, image_size(p))
+        c2w = np.eye(4)
+        m = np.asarray(fr["transform_matrix"], dtype=np.float64)
+        c2w[: m.shape[0], :4] = m[:, :4]
+        c2w[:3, 1:3] *= -1.0            # OpenGL/Blender (y up, z back) -> OpenCV (y down, z fwd)
+        name = re.sub(r"^\./", "", str(fr["file_path"]))
+        name = str(Path(name).with_suffix("")) if Path(name).suffix.lower() in IMAGE_EXTENSIONS \
+            else name
+        views.append(ViewRecord(name=name, path=p, source=src, w2c=np.linalg.inv(c2w),
+                                split=split))
+    return views
+
+
+def read_blender(path: Path, images: str | None) -> ReaderResult:
+    if images is not None:
+        raise SceneError(f"{path}: images={images!r} applies to COLMAP scenes only; Blender scenes "
+                         "take their image paths from transforms*.json")
+    train, test = path / "transforms_train.json", path / "transforms_test.json"
+    if train.is_file():
+        views = _read_transforms(train, "train")
+        if test.is_file():
+            views += _read_transforms(test, "test")
+        split = "files"
+        jsons = [train.name] + ([test.name] if test.is_file() else [])
+    elif (path / "transforms.json").is_file():
+        views = _read_transforms(path / "transforms.json", None)
+        split = "every_n"
+        jsons = ["transforms.json"]
+    else:
+        found = sorted(p.name for p in path.glob("transforms*.json"))
+        raise SceneError(f"{path}: found {found} but need transforms_train.json (+ "
+                         "transforms_test.json) or transforms.json")
+    if not views:
+        raise SceneError(f"{path / jsons[0]}: no frames")
+    return ReaderResult("blender", views, None, None,
+                        {"image_folder": ", ".join(jsons), "folder_downscale": None,
+                         "split_source": split})

@@ -1,0 +1,194 @@
+"""Image quality metrics, computed the way the 3DGS papers report them.
+
+Every metric first rounds both images to uint8, ``round(clamp(x, 0, 1) * 255)`` (SPEC section 1:
+"metrics are computed on images rounded to uint8"); uint8 inputs are used as they are. Images are
+channel-last ``[H, W, C]`` (torch tensors or numpy arrays), like ``Scene.image``.
+
+* :func:`psnr`: ``10 log10(255^2 / MSE)`` over all pixels and channels of the uint8 values
+  (``inf`` for identical images).
+* :func:`ssim`: ``skimage.metrics.structural_similarity`` on the uint8 values with the 3DGS
+  window: ``gaussian_weights=True, sigma=1.5`` (11 x 11 Gaussian window, skimage's truncate 3.5),
+  ``use_sample_covariance=False``, ``data_range=255``, ``channel_axis=-1``; K1 = 0.01,
+  K2 = 0.03. skimage averages the SSIM map over the pixels whose window lies inside the image
+  (a 5-pixel border is left out) and over channels; 3DGS's training-time PyTorch SSIM pads with
+  zeros instead, so values differ slightly near borders. This is the evaluation number.
+* :class:`LPIPS`: LPIPS with a VGG16 backbone in plain torch (no torchvision here). Weights are
+  never downloaded or guessed: :func:`load_lpips` loads them from a user-given ``.pth`` file and
+  otherwise reports ``LPIPS unavailable: pass --lpips-weights PATH``.
+"""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import torch
+from skimage.metrics import structural_similarity
+
+LPIPS_UNAVAILABLE = "LPIPS unavailable: pass --lpips-weights PATH"
+
+SSIM_SETTINGS = dict(gaussian_weights=True, sigma=1.5, use_sample_covariance=False,
+                     data_range=255, channel_axis=-1)
+
+
+def to_uint8(img) -> np.ndarray:
+    """round(clamp(x, 0, 1) * 255) as a uint8 numpy array; uint8 input passes through."""
+    if isinstance(img, torch.Tensor):
+        if img.dtype == torch.uint8:
+            return img.detach().cpu().numpy()
+        img = img.detach().cpu().double().numpy()
+    img = np.asarray(img)
+    if img.dtype == np.uint8:
+        return img
+    return np.round(np.clip(img.astype(np.float64), 0.0, 1.0) * 255.0).astype(np.uint8)
+
+
+def _pair(img, gt) -> tuple[np.ndarray, np.ndarray]:
+    a, b = to_uint8(img), to_uint8(gt)
+    if a.shape != b.shape:
+        raise ValueError(f"image shapes differ: {a.shape} vs {b.shape}")
+    if a.ndim != 3:
+        raise ValueError(f"expected [H, W, C] images, got shape {a.shape}")
+    return a, b
+
+
+def psnr(img, gt) -> float:
+    """PSNR in dB of uint8-rounded images [H, W, C] (inf when identical)."""
+    a, b = _pair(img, gt)
+    mse = np.mean((a.astype(np.float64) - b.astype(np.float64)) ** 2)
+    return math.inf if mse == 0 else float(10.0 * np.log10(255.0 ** 2 / mse))
+
+
+def ssim(img, gt) -> float:
+    """SSIM of uint8-rounded images [H, W, C] with the 3DGS 11x11 Gaussian window (sigma 1.5)."""
+    a, b = _pair(img, gt)
+    if min(a.shape[:2]) < 11:
+        raise ValueError(f"SSIM needs images of at least 11 x 11 pixels, got {a.shape[:2]}")
+    return float(structural_similarity(a, b, **SSIM_SETTINGS))
+
+
+# ------------------------------------------------------------------------------------- LPIPS
+# torchvision's vgg16().features layout: index -> conv (in, out) or "R" (ReLU) / "M" (max pool)
+_VGG16 = [64, 64, "M", 128, 128, "M", 256, 256, 256, "M", 512, 512, 512, "M", 512, 512, 512]
+_TAPS = (3, 8, 15, 22, 29)                 # relu1_2, relu2_2, relu3_3, relu4_3, relu5_3
+_CHANNELS = (64, 128, 256, 512, 512)
+_SHIFT = (-0.030, -0.088, -0.188)          # LPIPS input scaling layer
+_SCALE = (0.458, 0.448, 0.450)
+
+
+class LPIPS(torch.nn.Module):
+    """LPIPS (VGG16 variant): distance of unit-normalized VGG features, weighted per channel.
+
+    ``d(x, y) = sum_l mean_hw( w_l . (f_l(x) / |f_l(x)| - f_l(y) / |f_l(y)|)^2 )`` over the five
+    taps relu1_2 ... relu5_3, with inputs mapped to [-1, 1] and then ``(x - shift) / scale``.
+
+    State-dict keys (what :meth:`load_weights` accepts; one file holds both parts):
+
+    * backbone: ``features.{i}.weight`` / ``features.{i}.bias`` for the 13 convolutions,
+      ``i`` in 0, 2, 5, 7, 10, 12, 14, 17, 19, 21, 24, 26, 28 (torchvision's ``vgg16().features``
+      names, also with a ``net.`` prefix), or the lpips package's ``net.slice{k}.{i}.*`` names
+      (same ``i``);
+    * linear heads: ``lin{k}.model.1.weight`` (lpips package; ``model.0`` without dropout) or ``lin{k}.weight`` or
+      ``lins.{k}.weight``, k = 0..4, shapes ``[1, C_k, 1, 1]``, C = 64, 128, 256, 512, 512.
+
+    Other keys (e.g. ``scaling_layer.shift``) are ignored.
+    """
+
+    def __init__(self):
+        super().__init__()
+        layers: list[torch.nn.Module] = []
+        c_in = 3
+        for v in _VGG16:
+            if v == "M":
+                layers.append(torch.nn.MaxPool2d(2, 2))
+            else:
+                layers += [torch.nn.Conv2d(c_in, v, 3, padding=1), torch.nn.ReLU(inplace=False)]
+                c_in = v
+        self.features = torch.nn.Sequential(*layers)           # indices match torchvision
+        self.lins = torch.nn.ModuleList(torch.nn.Conv2d(c, 1, 1, bias=False) for c in _CHANNELS)
+        self.register_buffer("shift", torch.tensor(_SHIFT).view(1, 3, 1, 1))
+        self.register_buffer("scale", torch.tensor(_SCALE).view(1, 3, 1, 1))
+        self.requires_grad_(False)
+        self.eval()
+
+    @staticmethod
+    def _canonical(key: str) -> str | None:
+        import re
+        k = key[7:] if key.startswith("module.") else key
+        m = re.fullmatch(r"(?:net\.)?slice\d\.(\d+)\.(weight|bias)", k) or \
+            re.fullmatch(r"(?:net\.)?features\.(\d+)\.(weight|bias)", k)
+        if m:
+            return f"features.{m.group(1)}.{m.group(2)}"
+        m = re.fullmatch(r"lin(\d)(?:\.model\.\d)?\.weight", k) or re.fullmatch(r"lins\.(\d)\.weight", k)
+        if m:
+            return f"lins.{m.group(1)}.weight"
+        return None
+
+    def load_weights(self, state: dict) -> "LPIPS":
+        """Load a state dict with the keys listed in the class docstring (strict on those)."""
+        want = {k for k in self.state_dict() if k not in ("shift", "scale")}
+        got = {}
+        for k, v in state.items():
+            c = self._canonical(k)
+            if c is not None:
+                got[c] = torch.as_tensor(v)
+        missing = sorted(want - set(got))
+        if missing:
+            raise ValueError(f"LPIPS weights lack {len(missing)} tensors, e.g. {missing[:4]} "
+                             "(expected VGG16 features.* and lin*.weight keys)")
+        own = self.state_dict()
+        for k in want:
+            if tuple(got[k].shape) != tuple(own[k].shape):
+                raise ValueError(f"LPIPS weight {k}: shape {tuple(got[k].shape)}, expected "
+                                 f"{tuple(own[k].shape)}")
+        self.load_state_dict({**{k: got[k] for k in want}, "shift": own["shift"],
+                              "scale": own["scale"]})
+        return self
+
+    def _feats(self, x: torch.Tensor) -> list[torch.Tensor]:
+        x = (x - self.shift) / self.scale
+        out = []
+        for i, layer in enumerate(self.features):
+            x = layer(x)
+            if i in _TAPS:
+                out.append(x)
+            if i >= _TAPS[-1]:
+                break
+        return out
+
+    @torch.no_grad()
+    def forward(self, img, gt) -> torch.Tensor:
+        """LPIPS of uint8-rounded images, [H, W, 3] -> scalar tensor, [B, H, W, 3] -> [B]."""
+        a = torch.from_numpy(to_uint8(img).astype(np.float32))
+        b = torch.from_numpy(to_uint8(gt).astype(np.float32))
+        if a.shape != b.shape or a.shape[-1] != 3 or a.ndim not in (3, 4):
+            raise ValueError(f"expected two [H, W, 3] or [B, H, W, 3] images, got "
+                             f"{tuple(a.shape)} and {tuple(b.shape)}")
+        single = a.ndim == 3
+        dev = self.shift.device
+        a, b = (t.reshape((-1,) + t.shape[-3:]).permute(0, 3, 1, 2).to(dev) / 127.5 - 1.0
+                for t in (a, b))
+        d = torch.zeros(a.shape[0], device=dev)
+        for lin, fa, fb in zip(self.lins, self._feats(a), self._feats(b)):
+            na = fa / (fa.pow(2).sum(1, keepdim=True).sqrt() + 1e-10)
+            nb = fb / (fb.pow(2).sum(1, keepdim=True).sqrt() + 1e-10)
+            d = d + lin((na - nb) ** 2).mean(dim=(1, 2, 3))
+        return d[0] if single else d
+
+
+def load_lpips(weights: str | Path | None, device: str | torch.device = "cpu"
+               ) -> tuple[LPIPS | None, str | None]:
+    """(model, None) when ``weights`` names an existing file, else (None, reason).
+
+    A file that exists but lacks the expected tensors raises ``ValueError``: a user who passed
+    weights gets an error, not a silently missing metric.
+    """
+    if weights is None:
+        return None, LPIPS_UNAVAILABLE
+    p = Path(weights).expanduser()
+    if not p.is_file():
+        return None, f"{LPIPS_UNAVAILABLE} (no file at {p})"
+    state = torch.load(p, map_location="cpu", weights_only=True)
+    if isinstance(state, dict) and "state_dict" in state and isinstance(state["state_dict"], dict):
+        state = state["state_dict"]
+    return LPIPS().load_weights(state).to(device), None

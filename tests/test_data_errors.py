@@ -1,0 +1,162 @@
+"""Bad inputs: each raises SceneError (a ValueError) whose message names the file or camera."""
+from __future__ import annotations
+
+import json
+import shutil
+
+import numpy as np
+import pycolmap
+import pytest
+import torch
+
+from baseline.data import SceneError, load_scene
+from baseline.data.images import write_png_atomic
+from baseline.data.synthetic import make_scene
+
+torch.set_num_threads(1)
+
+SMALL = dict(n_views=6, width=48, height=36, n_points=100)
+
+
+@pytest.fixture(scope="module")
+def base(tmp_path_factory):
+    return make_scene(tmp_path_factory.mktemp("err") / "scene", **SMALL)
+
+
+@pytest.fixture
+def scene(base, tmp_path):
+    return shutil.copytree(base, tmp_path / "scene")
+
+
+def load(path, tmp_path, **kw):
+    return load_scene(path, cache_dir=tmp_path / "cache", **kw)
+
+
+def test_scene_error_is_value_error():
+    assert issubclass(SceneError, ValueError)
+
+
+def test_missing_image(scene, tmp_path):
+    (scene / "images" / "view_003.png").unlink()
+    with pytest.raises(SceneError) as e:
+        load(scene, tmp_path)
+    msg = str(e.value)
+    assert str(scene / "images" / "view_003.png") in msg and "images.bin" in msg
+
+
+def test_unreadable_image(scene, tmp_path):
+    (scene / "images" / "view_002.png").write_bytes(b"this is not a png" * 10)
+    with pytest.raises(SceneError) as e:
+        load(scene, tmp_path)
+    assert str(scene / "images" / "view_002.png") in str(e.value)
+
+
+def test_truncated_image(scene, tmp_path):
+    """Header intact, pixel data cut: fails when decoded (at prefetch, or at image())."""
+    f = scene / "images" / "view_004.png"
+    data = f.read_bytes()
+    f.write_bytes(data[: len(data) // 2])
+    with pytest.raises(SceneError, match="view_004.png"):
+        load(scene, tmp_path)
+    s = load(scene, tmp_path, prefetch=False)
+    s.image(s.cameras[3])                                    # other images are fine
+    with pytest.raises(SceneError, match="view_004.png"):
+        s.image(s.cameras[4])
+
+
+@pytest.mark.parametrize("model,dist", [("OPENCV_FISHEYE", (0.05, 0.0, 0.0, 0.0)),
+                                        ("SIMPLE_RADIAL_FISHEYE", (0.05,))])
+def test_unsupported_camera_model(tmp_path, model, dist):
+    out = make_scene(tmp_path / "fish", camera_model=model, distortion=dist, **SMALL)
+    with pytest.raises(SceneError) as e:
+        load(out, tmp_path)
+    msg = str(e.value)
+    assert "camera id 1" in msg and model in msg and "cameras.bin" in msg
+    for ok in ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV"):
+        assert ok in msg
+
+
+def test_empty_point_cloud(scene, tmp_path):
+    model = scene / "sparse" / "0"
+    rec = pycolmap.Reconstruction(str(model))
+    for pid in list(rec.point3D_ids()):
+        rec.delete_point3D(pid)
+    rec.write(str(model))
+    with pytest.raises(SceneError) as e:
+        load(scene, tmp_path)
+    msg = str(e.value)
+    assert str(model / "points3D.bin") in msg and "empty" in msg and "triangulat" in msg
+
+
+def test_incomplete_model(scene, tmp_path):
+    (scene / "sparse" / "0" / "points3D.bin").unlink()
+    with pytest.raises(SceneError, match="points3D"):
+        load(scene, tmp_path)
+
+
+@pytest.mark.parametrize("content", ["empty", "junk"])
+def test_unknown_layout(tmp_path, content):
+    d = tmp_path / "notascene"
+    d.mkdir()
+    if content == "junk":
+        (d / "readme.txt").write_text("hello")
+        (d / "images").mkdir()
+    with pytest.raises(SceneError) as e:
+        load(d, tmp_path)
+    msg = str(e.value)
+    assert str(d) in msg and "COLMAP" in msg and "sparse/0" in msg and "transforms" in msg
+
+
+def test_missing_folder(tmp_path):
+    with pytest.raises(SceneError, match="does not exist"):
+        load(tmp_path / "nope", tmp_path)
+
+
+def test_image_with_wrong_aspect(scene, tmp_path):
+    write_png_atomic(scene / "images" / "view_001.png", np.zeros((48, 36, 3), np.uint8))
+    with pytest.raises(SceneError) as e:
+        load(scene, tmp_path)
+    assert "view_001.png" in str(e.value) and "48x36" in str(e.value)
+
+
+def test_missing_image_folder(scene, tmp_path):
+    with pytest.raises(SceneError, match="images_4"):
+        load(scene, tmp_path, images="images_4")
+    shutil.rmtree(scene / "images")
+    with pytest.raises(SceneError, match="no images/"):
+        load(scene, tmp_path)
+
+
+def _blender(tmp_path, meta_extra=None, frame_file="./train/r_0"):
+    d = tmp_path / "bl"
+    (d / "train").mkdir(parents=True)
+    write_png_atomic(d / "train" / "r_0.png", np.zeros((8, 8, 4), np.uint8))
+    meta = {"camera_angle_x": 0.7, "frames": [{"file_path": frame_file,
+                                                "transform_matrix": np.eye(4).tolist()}]}
+    meta.update(meta_extra or {})
+    (d / "transforms_train.json").write_text(json.dumps(meta))
+    return d
+
+
+@pytest.mark.filterwarnings("ignore:all training cameras share one centre")
+def test_blender_errors(tmp_path):
+    d = _blender(tmp_path / "a", frame_file="./train/r_9")
+    with pytest.raises(SceneError) as e:
+        load(d, tmp_path)
+    assert "r_9" in str(e.value) and "transforms_train.json" in str(e.value)
+
+    d = _blender(tmp_path / "b")
+    meta = json.loads((d / "transforms_train.json").read_text())
+    del meta["camera_angle_x"]
+    (d / "transforms_train.json").write_text(json.dumps(meta))
+    with pytest.raises(SceneError, match="transforms_train.json.*intrinsics"):
+        load(d, tmp_path)
+
+    d = _blender(tmp_path / "c", {"is_fisheye": True})
+    with pytest.raises(SceneError, match="not supported"):
+        load(d, tmp_path)
+
+    d = _blender(tmp_path / "d")
+    with pytest.raises(SceneError, match="COLMAP scenes only"):
+        load(d, tmp_path, images="images_8")
+    assert len(load(d, tmp_path).train_cameras) == 1         # the valid one loads

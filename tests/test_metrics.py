@@ -1,0 +1,136 @@
+"""Metrics against hand-computed values: uint8 PSNR, SSIM (3DGS window), LPIPS plumbing."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from baseline.eval.metrics import LPIPS, LPIPS_UNAVAILABLE, load_lpips, psnr, ssim, to_uint8
+
+torch.set_num_threads(1)
+
+
+def test_psnr_constant_offset():
+    gt = np.full((8, 9, 3), 100, np.uint8)
+    img = np.full((8, 9, 3), 110, np.uint8)
+    assert psnr(img, gt) == pytest.approx(10 * math.log10(255 ** 2 / 100))     # 28.1308 dB
+    assert psnr(img / 255.0, gt / 255.0) == pytest.approx(28.130803608679106)
+    assert psnr(torch.from_numpy(img / 255.0).float(), gt) == pytest.approx(28.130803608679106)
+    # one channel off by 3 on half the pixels: mse = 9 / 2 / 3
+    img2 = gt.copy()
+    img2[:4, :, 1] += 3
+    assert psnr(img2, gt) == pytest.approx(10 * math.log10(255 ** 2 / (9 * 36 / 216)))
+    assert psnr(gt, gt) == math.inf
+
+
+def test_uint8_rounding():
+    gt = np.full((4, 4, 3), 100 / 255)
+    assert psnr(gt + 0.49 / 255, gt) == math.inf             # rounds to the same uint8
+    assert psnr(gt + 0.51 / 255, gt) == pytest.approx(10 * math.log10(255 ** 2))   # off by 1
+    over = np.full((4, 4, 3), 1.7)
+    assert np.all(to_uint8(over) == 255) and np.all(to_uint8(-over) == 0)
+    assert psnr(over, np.ones((4, 4, 3))) == math.inf        # clamped before rounding
+    assert to_uint8(np.array([[[0.5 / 255, 1.5 / 255, 127.5 / 255]]])).tolist() == [[[0, 2, 128]]]
+    with pytest.raises(ValueError):
+        psnr(np.zeros((4, 4, 3)), np.zeros((4, 5, 3)))
+
+
+def ssim_direct(a: np.ndarray, b: np.ndarray) -> float:
+    """SSIM written out: 11x11 Gaussian window (sigma 1.5, normalized), population moments,
+    averaged over every window that lies inside the image and over channels."""
+    x = np.arange(-5, 6)
+    g = np.exp(-x ** 2 / (2 * 1.5 ** 2))
+    g /= g.sum()
+    win = np.outer(g, g)
+    C1, C2 = (0.01 * 255) ** 2, (0.03 * 255) ** 2
+    H, W, C = a.shape
+    vals = []
+    for c in range(C):
+        for i in range(5, H - 5):
+            for j in range(5, W - 5):
+                pa = a[i - 5:i + 6, j - 5:j + 6, c].astype(np.float64)
+                pb = b[i - 5:i + 6, j - 5:j + 6, c].astype(np.float64)
+                ma, mb = (win * pa).sum(), (win * pb).sum()
+                va = (win * pa * pa).sum() - ma * ma
+                vb = (win * pb * pb).sum() - mb * mb
+                cov = (win * pa * pb).sum() - ma * mb
+                vals.append(((2 * ma * mb + C1) * (2 * cov + C2))
+                            / ((ma * ma + mb * mb + C1) * (va + vb + C2)))
+    return float(np.mean(vals))
+
+
+def test_ssim_against_direct_computation():
+    rng = np.random.default_rng(0)
+    gt = rng.integers(0, 256, (19, 23, 3)).astype(np.uint8)
+    img = np.clip(gt + rng.normal(0, 25, gt.shape), 0, 255).round().astype(np.uint8)
+    assert ssim(img, gt) == pytest.approx(ssim_direct(img, gt), abs=1e-9)
+    assert ssim(gt, gt) == 1.0
+    assert ssim(img, gt) == pytest.approx(ssim(gt, img))
+    assert 0.5 < ssim(img, gt) < 0.99
+    # float input is rounded to uint8 first: +0.4/255 changes nothing
+    assert ssim(gt / 255.0 + 0.4 / 255, gt) == 1.0
+    with pytest.raises(ValueError):
+        ssim(gt[:10, :10], gt[:10, :10])
+
+
+def _random_lpips(seed=0) -> LPIPS:
+    torch.manual_seed(seed)
+    net = LPIPS()
+    for m in net.modules():
+        if isinstance(m, torch.nn.Conv2d):
+            torch.nn.init.normal_(m.weight, std=0.05)
+            if m.bias is not None:
+                torch.nn.init.normal_(m.bias, std=0.01)
+    for lin in net.lins:
+        lin.weight.data.abs_()                                  # LPIPS heads are non-negative
+    return net
+
+
+def test_lpips_zero_for_identical_and_shapes():
+    net = _random_lpips()
+    rng = np.random.default_rng(1)
+    x = rng.uniform(size=(2, 32, 40, 3)).astype(np.float32)
+    y = np.clip(x + rng.normal(0, 0.2, x.shape), 0, 1).astype(np.float32)
+    d0 = net(x[0], x[0])
+    assert d0.shape == () and float(d0) == 0.0
+    d = net(x, y)
+    assert d.shape == (2,) and torch.all(d > 0)
+    assert float(net(x[1], y[1])) == pytest.approx(float(d[1]), rel=1e-5)
+    assert float(net(torch.from_numpy(x[1]), y[1])) == pytest.approx(float(d[1]), rel=1e-5)
+    with pytest.raises(ValueError):
+        net(x[0], x[0, :, :, :2])
+
+
+def test_load_lpips(tmp_path):
+    assert load_lpips(None) == (None, LPIPS_UNAVAILABLE)
+    model, reason = load_lpips(tmp_path / "missing.pth")
+    assert model is None and reason.startswith(LPIPS_UNAVAILABLE) and "missing.pth" in reason
+
+    net = _random_lpips(3)
+    sd = net.state_dict()
+    # torchvision names for the backbone, lpips-package names for the heads
+    tv = {k: v for k, v in sd.items() if k.startswith("features.")}
+    tv.update({f"lin{k}.model.1.weight": sd[f"lins.{k}.weight"] for k in range(5)})
+    torch.save(tv, tmp_path / "tv.pth")
+    # the lpips package's own full-model names: net.slice{s}.{i}.*
+    slices = {0: 1, 2: 1, 5: 2, 7: 2, 10: 3, 12: 3, 14: 3, 17: 4, 19: 4, 21: 4, 24: 5, 26: 5, 28: 5}
+    lp = {f"net.slice{s}.{i}.{p}": sd[f"features.{i}.{p}"] for i, s in slices.items()
+          for p in ("weight", "bias")}
+    lp.update({f"lin{k}.model.1.weight": sd[f"lins.{k}.weight"] for k in range(5)})
+    lp["scaling_layer.shift"] = torch.zeros(1, 3, 1, 1)
+    torch.save(lp, tmp_path / "lp.pth")
+
+    rng = np.random.default_rng(2)
+    x = rng.uniform(size=(24, 24, 3)).astype(np.float32)
+    y = rng.uniform(size=(24, 24, 3)).astype(np.float32)
+    ref = float(net(x, y))
+    for f in ("tv.pth", "lp.pth"):
+        m, reason = load_lpips(tmp_path / f)
+        assert reason is None and float(m(x, y)) == pytest.approx(ref, rel=1e-6)
+
+    del tv["lin4.model.1.weight"]
+    torch.save(tv, tmp_path / "bad.pth")
+    with pytest.raises(ValueError, match="lins.4.weight"):
+        load_lpips(tmp_path / "bad.pth")
