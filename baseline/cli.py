@@ -72,7 +72,9 @@ def cmd_eval(args) -> int:
     from baseline.run import evaluate_trainer, load_run, write_json_atomic
 
     trainer, scene = load_run(args.run)
-    lpips_fn = load_lpips(args.lpips_weights) if args.lpips_weights else None
+    lpips_fn, reason = load_lpips(args.lpips_weights)
+    if lpips_fn is None:
+        print(reason)
     res = evaluate_trainer(trainer, scene, render_dir=Path(args.run) / "renders" / "test",
                            lpips_fn=lpips_fn)
     print(json.dumps(res, indent=2))
@@ -80,6 +82,24 @@ def cmd_eval(args) -> int:
     full = json.loads(path.read_text()) if path.exists() else {}
     full["test"] = res
     write_json_atomic(path, full)
+    return 0
+
+
+def cmd_export_ply(args) -> int:
+    from baseline.eval.export import export_run_ply
+    from baseline.run import load_run
+
+    trainer, scene = load_run(args.run)
+    out = args.output or str(Path(args.run) / "point_cloud.ply")
+    values = None
+    if trainer.phase == "adaptive":      # export what the codec would store: quantized values
+        import torch
+
+        idx = torch.arange(trainer.model.n_anchors)
+        xyz_q = trainer.entropy.quantized_positions(trainer.model.xyz.detach())
+        values = trainer.entropy.quantize(xyz_q, trainer.model.coded_values(idx))
+    n = export_run_ply(trainer.model, scene.train_cameras, out, values)
+    print(f"wrote {n} Gaussians to {out}")
     return 0
 
 
@@ -144,6 +164,11 @@ def main(argv=None) -> int:
     p.add_argument("run")
     p.add_argument("--lpips-weights", default=None, help="LPIPS weights file (else unavailable)")
     p.set_defaults(fn=cmd_eval)
+
+    p = sub.add_parser("export-ply", help="write the decoded neural Gaussians as a 3DGS PLY")
+    p.add_argument("run")
+    p.add_argument("-o", "--output", default=None)
+    p.set_defaults(fn=cmd_export_ply)
 
     p = sub.add_parser("bench", help="benchmarks, printed as ratios to a reference in one process")
     p.add_argument("what", choices=["raster", "codec"])

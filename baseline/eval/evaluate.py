@@ -8,13 +8,8 @@ from typing import Optional
 import numpy as np
 import torch
 
-from baseline.eval.metrics import psnr, ssim
+from baseline.eval.metrics import psnr, ssim, to_uint8
 from baseline.pipeline import render_view
-
-
-def to_uint8(img: torch.Tensor) -> np.ndarray:
-    """[H,W,3] float in [0,1] -> uint8 (rounded), the form every reported metric is computed on."""
-    return (img.detach().clamp(0, 1) * 255.0).round().to(torch.uint8).cpu().numpy()
 
 
 def save_png(path: Path, img_u8: np.ndarray) -> None:
