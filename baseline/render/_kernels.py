@@ -60,7 +60,7 @@ _RADIUS_CAP = 1 << 30  # radii are clamped here before the int32 conversion
 _FM = {"reassoc", "contract", "arcp", "nsz"}
 
 
-@njit(inline="always", fastmath=_FM)
+@njit(inline="always", fastmath=_FM, error_model="numpy")
 def _exp_neg(power):
     """exp(-power) for float32 ``power``; accurate (~1e-6 relative) on [0, 11], see module doc."""
     p = min(max(power, _F0), _POWER_CLAMP)
@@ -488,14 +488,33 @@ def bin_pairs(order, rect, tiles_x, n_tiles, n_chunks):
 # Rasterization
 # --------------------------------------------------------------------------------------------
 
-@njit(parallel=True, cache=True, fastmath=_FM)
+@njit(inline="always")
+def _row_span(my, ry, y0, y1):
+    """Rows [gy0, gy1) of a tile (rows y0..y1) inside a Gaussian's box (centre my, half
+    height ry); pixel row y has its centre at y + 0.5."""
+    gy0 = max(y0, np.int64(math.ceil(my - ry - _FHALF)))
+    gy1 = min(y1, np.int64(math.floor(my + ry - _FHALF)) + 1)
+    return gy0, gy1
+
+
+@njit(parallel=True, cache=True, fastmath=_FM, error_model="numpy")
 def raster_fwd(means2d, conics, opac, colors, background, radii, tile_start, pair_gauss,
                width, height, tiles_x, out_image, out_T, out_last):
     """Front-to-back alpha compositing, one tile per parallel task.
 
+    Per tile, the state of its 16 x 16 pixels (padded at the image border; padding pixels
+    start "done") lives in one flat float32 array ``S`` (transmittance, done flag, last
+    contributor as a tile-local index, colour accumulators): with a single array and constant
+    offsets LLVM needs no aliasing checks and vectorizes the row loops. For each Gaussian of
+    the tile (front to back), the tile rows inside its box are updated 16 pixels at a time;
+    rows whose pixels are all done are skipped, and the tile stops when every pixel is done.
+    Whole tile rows are evaluated, as in the reference; pixels outside the box have
+    alpha < 1/255 and are rejected by the compositing rule. C = 3 has a fused path.
+
     Args:
         means2d [N, 2], conics [N, 3], opac [N], colors [N, K], background [K]: float32.
-        radii [N, 2] int32. tile_start, pair_gauss: from :func:`bin_pairs`.
+        radii [N, 2] int32. tile_start, pair_gauss: from :func:`bin_pairs` (at most 2^24
+        pairs per tile: tile-local indices are stored as float32).
         width, height, tiles_x: image and tile grid size.
     Outputs:
         out_image [H, W, K] float32: sum_i c_i a_i T_i + T_final * background.
@@ -503,222 +522,326 @@ def raster_fwd(means2d, conics, opac, colors, background, radii, tile_start, pai
         out_last [H, W] int64: pair index of the last contributing Gaussian (-1 if none).
     """
     n_tiles = tile_start.shape[0] - 1
-    n_ch = colors.shape[1]
     for t in prange(n_tiles):
-        ty = t // tiles_x
-        tx = t - ty * tiles_x
-        x0 = tx * _TILE
-        y0 = ty * _TILE
-        x1 = min(x0 + _TILE, width)
-        y1 = min(y0 + _TILE, height)
-        tw = x1 - x0
-        npix = tw * (y1 - y0)
-        T = np.ones(npix, np.float32)
-        acc = np.zeros((n_ch, npix), np.float32)
-        last = np.full(npix, -1, np.int64)
-        done = np.zeros(npix, np.float32)
-        wrow = np.empty(_TILE, np.float32)
-        n_done = 0.0
-        for k in range(tile_start[t], tile_start[t + 1]):
-            g = pair_gauss[k]
-            mx = means2d[g, 0]
-            my = means2d[g, 1]
-            ca = conics[g, 0]
-            cb = conics[g, 1]
-            cc = conics[g, 2]
-            o = opac[g]
-            # pixels of this tile inside the Gaussian's box (alpha < 1/255 outside)
-            rx = np.float32(radii[g, 0])
-            ry = np.float32(radii[g, 1])
-            gx0 = max(x0, np.int64(math.ceil(mx - rx - _FHALF)))
-            gx1 = min(x1, np.int64(math.floor(mx + rx - _FHALF)) + 1)
-            gy0 = max(y0, np.int64(math.ceil(my - ry - _FHALF)))
-            gy1 = min(y1, np.int64(math.floor(my + ry - _FHALF)) + 1)
-            if gx0 >= gx1 or gy0 >= gy1:
+        _fwd_tile(t, means2d, conics, opac, colors, background, radii, tile_start, pair_gauss,
+                  width, height, tiles_x, out_image, out_T, out_last)
+
+
+@njit(cache=True, fastmath=_FM, error_model="numpy")
+def _fwd_tile(t, means2d, conics, opac, colors, background, radii, tile_start, pair_gauss,
+              width, height, tiles_x, out_image, out_T, out_last):
+    """One tile of :func:`raster_fwd`. (A separate function: inside a prange body numba
+    passes the offsets as runtime values and LLVM no longer vectorizes the row loops.)"""
+    n_ch = colors.shape[1]
+    npix = _TILE * _TILE
+    o_T = 0
+    o_D = npix
+    o_L = 2 * npix
+    o_A = 3 * npix
+    o_W = (3 + n_ch) * npix
+    ty = t // tiles_x
+    tx = t - ty * tiles_x
+    x0 = tx * _TILE
+    y0 = ty * _TILE
+    x1 = min(x0 + _TILE, width)
+    y1 = min(y0 + _TILE, height)
+    k0 = tile_start[t]
+    S = np.zeros(o_W + _TILE, np.float32)
+    row_done = np.zeros(_TILE, np.float32)
+    n_done = _F0
+    for i in range(npix):
+        S[o_T + i] = _F1
+        S[o_L + i] = np.float32(-1.0)
+        r = i // _TILE
+        if y0 + r >= height or x0 + (i - r * _TILE) >= width:  # padding: done
+            S[o_D + i] = _F1
+            row_done[r] += _F1
+            n_done += _F1
+    for k in range(k0, tile_start[t + 1]):
+        g = pair_gauss[k]
+        mx = means2d[g, 0]
+        my = means2d[g, 1]
+        ca = conics[g, 0]
+        cb = conics[g, 1]
+        cc = conics[g, 2]
+        o = opac[g]
+        kf = np.float32(k - k0)
+        dx0 = mx - (np.float32(x0) + _FHALF)
+        gy0, gy1 = _row_span(my, np.float32(radii[g, 1]), y0, y1)
+        for py in range(gy0, gy1):
+            r = py - y0
+            if row_done[r] >= _TILE:
                 continue
-            for py in range(gy0, gy1):
-                dy = my - (np.float32(py) + _FHALF)
-                base = (py - y0) * tw - x0
-                half_c_dy2 = _FHALF * cc * dy * dy
-                b_dy = cb * dy
-                for px in range(gx0, gx1):
-                    i = base + px
-                    dx = mx - (np.float32(px) + _FHALF)
+            dy = my - (np.float32(py) + _FHALF)
+            off = r * _TILE
+            R = S[off:]  # one view, constant offsets + j >= 0: no wraparound, vectorizes
+            half_c_dy2 = _FHALF * cc * dy * dy
+            b_dy = cb * dy
+            cnt = _F0
+            if n_ch == 3:
+                c0 = colors[g, 0]
+                c1 = colors[g, 1]
+                c2 = colors[g, 2]
+                for j in range(_TILE):
+                    i = off + j
+                    dx = dx0 - np.float32(j)
                     power = _FHALF * ca * dx * dx + half_c_dy2 + b_dy * dx
                     alpha = min(_ALPHA_MAX, o * _exp_neg(power))
-                    ti = T[i]
+                    ti = R[o_T + j]
                     nt = ti * (_F1 - alpha)
-                    ok = (power >= _F0) & (alpha >= _ALPHA_MIN) & (done[i] == _F0)
+                    ok = (power >= _F0) & (alpha >= _ALPHA_MIN) & (R[o_D + j] == _F0)
                     stop = ok & (nt <= _T_MIN)
                     contrib = ok & (nt > _T_MIN)
-                    wrow[px - gx0] = alpha * ti if contrib else _F0
-                    T[i] = nt if contrib else ti
-                    last[i] = k if contrib else last[i]
+                    w = alpha * ti if contrib else _F0
+                    R[o_A + j] += w * c0
+                    R[o_A + npix + j] += w * c1
+                    R[o_A + 2 * npix + j] += w * c2
+                    R[o_T + j] = nt if contrib else ti
+                    R[o_L + j] = kf if contrib else R[o_L + j]
                     sv = _F1 if stop else _F0
-                    done[i] += sv
-                    n_done += sv
+                    R[o_D + j] += sv
+                    cnt += sv
+            else:
+                for j in range(_TILE):
+                    i = off + j
+                    dx = dx0 - np.float32(j)
+                    power = _FHALF * ca * dx * dx + half_c_dy2 + b_dy * dx
+                    alpha = min(_ALPHA_MAX, o * _exp_neg(power))
+                    ti = R[o_T + j]
+                    nt = ti * (_F1 - alpha)
+                    ok = (power >= _F0) & (alpha >= _ALPHA_MIN) & (R[o_D + j] == _F0)
+                    stop = ok & (nt <= _T_MIN)
+                    contrib = ok & (nt > _T_MIN)
+                    S[o_W + j] = alpha * ti if contrib else _F0
+                    R[o_T + j] = nt if contrib else ti
+                    R[o_L + j] = kf if contrib else R[o_L + j]
+                    sv = _F1 if stop else _F0
+                    R[o_D + j] += sv
+                    cnt += sv
                 for ch in range(n_ch):
                     col = colors[g, ch]
-                    for px in range(gx0, gx1):
-                        acc[ch, base + px] += wrow[px - gx0] * col
-            if n_done >= npix:
-                break
-        for py in range(y0, y1):
-            for px in range(x0, x1):
-                i = (py - y0) * tw + px - x0
-                ti = T[i]
-                for ch in range(n_ch):
-                    out_image[py, px, ch] = acc[ch, i] + ti * background[ch]
-                out_T[py, px] = ti
-                out_last[py, px] = last[i]
+                    a_v = S[o_A + ch * npix + off:]
+                    for j in range(_TILE):
+                        a_v[j] += S[o_W + j] * col
+            row_done[r] += cnt
+            n_done += cnt
+        if n_done >= npix:
+            break
+    for py in range(y0, y1):
+        for px in range(x0, x1):
+            i = (py - y0) * _TILE + px - x0
+            ti = S[o_T + i]
+            for ch in range(n_ch):
+                out_image[py, px, ch] = S[o_A + ch * npix + i] + ti * background[ch]
+            out_T[py, px] = ti
+            lf = S[o_L + i]
+            out_last[py, px] = k0 + np.int64(lf) if lf >= _F0 else -1
 
 
-@njit(parallel=True, cache=True, fastmath=_FM)
+@njit(parallel=True, cache=True, fastmath=_FM, error_model="numpy")
 def raster_bwd(means2d, conics, opac, colors, background, radii, tile_start, pair_gauss,
                pair_slot, width, height, tiles_x, T_final, last, v_image, v_alpha, out_pair):
     """Backward of :func:`raster_fwd`, one tile per parallel task.
 
     Each pixel walks back from its last contributor, recovering the transmittance in front of
     each Gaussian by division (T_prev = T / (1 - alpha); alpha <= 0.999 keeps it stable) and
-    the colour accumulated behind it.
+    the colour accumulated behind it. Same flat per-tile state and 16-wide rows as the
+    forward; rows whose pixels all ended before the current Gaussian are skipped; C = 3 has
+    a fused single-pass row loop.
 
     Args:
         as :func:`raster_fwd`, plus pair_slot [P] int64, T_final [H, W], last [H, W] int64
         (forward outputs), v_image [H, W, K], v_alpha [H, W] float32 (output gradients).
     Outputs:
         out_pair [P, 6 + K] float32, row pair_slot[k] of pair k: d/d(mean2d x, y),
-        d/d(conic A, B, C), d/d opacity, d/d colour (K). Rows of pairs behind every pixel's
-        last contributor are left untouched (pass a zeroed buffer).
+        d/d(conic A, B, C), d/d opacity, d/d colour (K). Rows of pairs no pixel reaches are left
+        untouched (pass a zeroed buffer).
     """
     n_tiles = tile_start.shape[0] - 1
-    n_ch = colors.shape[1]
     for t in prange(n_tiles):
-        k_begin = tile_start[t]
-        if tile_start[t + 1] == k_begin:
-            continue
-        ty = t // tiles_x
-        tx = t - ty * tiles_x
-        x0 = tx * _TILE
-        y0 = ty * _TILE
-        x1 = min(x0 + _TILE, width)
-        y1 = min(y0 + _TILE, height)
-        tw = x1 - x0
-        npix = tw * (y1 - y0)
-        T = np.empty(npix, np.float32)
-        tlast = np.empty(npix, np.int64)
-        extra = np.empty(npix, np.float32)  # T_final * (v_alpha - <background, v_image>)
-        vimg = np.empty((n_ch, npix), np.float32)
-        buf = np.zeros((n_ch, npix), np.float32)
-        k_max = k_begin - 1
-        for py in range(y0, y1):
-            for px in range(x0, x1):
-                i = (py - y0) * tw + px - x0
-                tf = T_final[py, px]
-                T[i] = tf
-                lk = last[py, px]
-                tlast[i] = lk
-                k_max = max(k_max, lk)
-                bdot = _F0
-                for ch in range(n_ch):
-                    gv = v_image[py, px, ch]
-                    vimg[ch, i] = gv
-                    bdot += background[ch] * gv
-                extra[i] = tf * (v_alpha[py, px] - bdot)
-        # per-row scratch
-        r_ok = np.empty(_TILE, np.float32)
-        r_fac = np.empty(_TILE, np.float32)
-        r_ra = np.empty(_TILE, np.float32)
-        r_t = np.empty(_TILE, np.float32)
-        r_s1 = np.empty(_TILE, np.float32)
-        r_s2 = np.empty(_TILE, np.float32)
-        r_dx = np.empty(_TILE, np.float32)
-        r_vis = np.empty(_TILE, np.float32)
-        vcol = np.empty(n_ch, np.float32)
-        for k in range(k_max, k_begin - 1, -1):
-            g = pair_gauss[k]
-            mx = means2d[g, 0]
-            my = means2d[g, 1]
-            ca = conics[g, 0]
-            cb = conics[g, 1]
-            cc = conics[g, 2]
-            o = opac[g]
-            rx = np.float32(radii[g, 0])
-            ry = np.float32(radii[g, 1])
-            gx0 = max(x0, np.int64(math.ceil(mx - rx - _FHALF)))
-            gx1 = min(x1, np.int64(math.floor(mx + rx - _FHALF)) + 1)
-            gy0 = max(y0, np.int64(math.ceil(my - ry - _FHALF)))
-            gy1 = min(y1, np.int64(math.floor(my + ry - _FHALF)) + 1)
-            if gx0 >= gx1 or gy0 >= gy1:
-                continue
-            v_mx = _F0
-            v_my = _F0
-            v_ca = _F0
-            v_cb = _F0
-            v_cc = _F0
-            v_o = _F0
+        _bwd_tile(t, means2d, conics, opac, colors, background, radii, tile_start, pair_gauss,
+                  pair_slot, width, height, tiles_x, T_final, last, v_image, v_alpha, out_pair)
+
+
+@njit(cache=True, fastmath=_FM, error_model="numpy")
+def _bwd_tile(t, means2d, conics, opac, colors, background, radii, tile_start, pair_gauss,
+              pair_slot, width, height, tiles_x, T_final, last, v_image, v_alpha, out_pair):
+    """One tile of :func:`raster_bwd` (a separate function for vectorization, see
+    :func:`_fwd_tile`)."""
+    n_ch = colors.shape[1]
+    npix = _TILE * _TILE
+    o_T = 0
+    o_L = npix  # last contributor, tile-local index as float32 (-1: none)
+    o_E = 2 * npix  # T_final * (v_alpha - <background, v_image>)
+    o_V = 3 * npix  # v_image, channel-major
+    o_B = (3 + n_ch) * npix  # colour accumulated behind, channel-major
+    o_R = (3 + 2 * n_ch) * npix  # row scratch (generic path): ok, fac, ra, t, s1, s2, vis
+    k0 = tile_start[t]
+    if tile_start[t + 1] == k0:
+        return
+    ty = t // tiles_x
+    tx = t - ty * tiles_x
+    x0 = tx * _TILE
+    y0 = ty * _TILE
+    x1 = min(x0 + _TILE, width)
+    y1 = min(y0 + _TILE, height)
+    S = np.zeros(o_R + 7 * _TILE, np.float32)
+    row_last = np.full(_TILE, -1, np.int64)
+    for i in range(npix):
+        S[o_T + i] = _F1
+        S[o_L + i] = np.float32(-1.0)
+    k_max = k0 - 1
+    for py in range(y0, y1):
+        r = py - y0
+        for px in range(x0, x1):
+            i = r * _TILE + px - x0
+            tf = T_final[py, px]
+            S[o_T + i] = tf
+            lk = last[py, px]
+            if lk >= k0:
+                S[o_L + i] = np.float32(lk - k0)
+            row_last[r] = max(row_last[r], lk)
+            bdot = _F0
             for ch in range(n_ch):
-                vcol[ch] = _F0
-            nx = gx1 - gx0
-            for py in range(gy0, gy1):
-                dy = my - (np.float32(py) + _FHALF)
-                base = (py - y0) * tw - x0
-                half_c_dy2 = _FHALF * cc * dy * dy
-                b_dy = cb * dy
-                for px in range(gx0, gx1):
-                    i = base + px
-                    j = px - gx0
-                    dx = mx - (np.float32(px) + _FHALF)
+                gv = v_image[py, px, ch]
+                S[o_V + ch * npix + i] = gv
+                bdot += background[ch] * gv
+            S[o_E + i] = tf * (v_alpha[py, px] - bdot)
+        k_max = max(k_max, row_last[r])
+    vcol = np.empty(n_ch, np.float32)
+    for k in range(k_max, k0 - 1, -1):
+        g = pair_gauss[k]
+        mx = means2d[g, 0]
+        my = means2d[g, 1]
+        ca = conics[g, 0]
+        cb = conics[g, 1]
+        cc = conics[g, 2]
+        o = opac[g]
+        kf = np.float32(k - k0)
+        dx0 = mx - (np.float32(x0) + _FHALF)
+        gy0, gy1 = _row_span(my, np.float32(radii[g, 1]), y0, y1)
+        v_mx = _F0
+        v_my = _F0
+        v_ca = _F0
+        v_cb = _F0
+        v_cc = _F0
+        v_o = _F0
+        vc0 = _F0
+        vc1 = _F0
+        vc2 = _F0
+        for ch in range(n_ch):
+            vcol[ch] = _F0
+        touched = False
+        for py in range(gy0, gy1):
+            r = py - y0
+            if k > row_last[r]:
+                continue
+            touched = True
+            dy = my - (np.float32(py) + _FHALF)
+            off = r * _TILE
+            R = S[off:]  # one view, constant offsets + j >= 0: no wraparound, vectorizes
+            half_c_dy2 = _FHALF * cc * dy * dy
+            b_dy = cb * dy
+            if n_ch == 3:
+                c0 = colors[g, 0]
+                c1 = colors[g, 1]
+                c2 = colors[g, 2]
+                for j in range(_TILE):
+                    i = off + j
+                    dx = dx0 - np.float32(j)
                     power = _FHALF * ca * dx * dx + half_c_dy2 + b_dy * dx
                     vis = _exp_neg(power)
                     alpha = min(_ALPHA_MAX, o * vis)
-                    ok = (power >= _F0) & (alpha >= _ALPHA_MIN) & (k <= tlast[i])
+                    ok = (power >= _F0) & (alpha >= _ALPHA_MIN) & (kf <= R[o_L + j])
                     ra = _F1 / (_F1 - alpha)
-                    tn = T[i] * ra if ok else T[i]
-                    T[i] = tn
-                    r_ok[j] = _F1 if ok else _F0
-                    r_fac[j] = alpha * tn if ok else _F0
-                    r_ra[j] = ra
-                    r_t[j] = tn
-                    r_dx[j] = dx
-                    r_vis[j] = vis
-                    r_s1[j] = _F0
-                    r_s2[j] = _F0
-                for ch in range(n_ch):
-                    col = colors[g, ch]
-                    acc_c = _F0
-                    for px in range(gx0, gx1):
-                        i = base + px
-                        j = px - gx0
-                        gv = vimg[ch, i]
-                        r_s1[j] += col * gv
-                        r_s2[j] += buf[ch, i] * gv
-                        acc_c += r_fac[j] * gv
-                        buf[ch, i] += col * r_fac[j]
-                    vcol[ch] += acc_c
-                for j in range(nx):
-                    i = base + gx0 + j
-                    okf = r_ok[j]
-                    ra = r_ra[j]
-                    v_al = okf * (r_t[j] * r_s1[j] - ra * r_s2[j] + ra * extra[i])
-                    vis = r_vis[j]
+                    t_old = R[o_T + j]
+                    tn = t_old * ra if ok else t_old
+                    R[o_T + j] = tn
+                    fac = alpha * tn if ok else _F0
+                    g0 = R[o_V + j]
+                    g1 = R[o_V + npix + j]
+                    g2 = R[o_V + 2 * npix + j]
+                    b0 = R[o_B + j]
+                    b1 = R[o_B + npix + j]
+                    b2 = R[o_B + 2 * npix + j]
+                    s1 = c0 * g0 + c1 * g1 + c2 * g2
+                    s2 = b0 * g0 + b1 * g1 + b2 * g2
+                    vc0 += fac * g0
+                    vc1 += fac * g1
+                    vc2 += fac * g2
+                    R[o_B + j] = b0 + c0 * fac
+                    R[o_B + npix + j] = b1 + c1 * fac
+                    R[o_B + 2 * npix + j] = b2 + c2 * fac
                     # the 0.999 clamp blocks gradients to opacity and the Gaussian's shape
-                    grad_on = _F1 if o * vis <= _ALPHA_MAX else _F0
-                    v_al = v_al * grad_on
+                    on = ok & (o * vis <= _ALPHA_MAX)
+                    v_al = (tn * s1 - ra * s2 + ra * R[o_E + j]) if on else _F0
                     v_sig = -o * vis * v_al
-                    dx = r_dx[j]
                     v_ca += _FHALF * dx * dx * v_sig
                     v_cb += dx * dy * v_sig
                     v_cc += _FHALF * dy * dy * v_sig
                     v_mx += v_sig * (ca * dx + cb * dy)
                     v_my += v_sig * (cb * dx + cc * dy)
                     v_o += vis * v_al
-            row = pair_slot[k]
-            out_pair[row, 0] = v_mx
-            out_pair[row, 1] = v_my
-            out_pair[row, 2] = v_ca
-            out_pair[row, 3] = v_cb
-            out_pair[row, 4] = v_cc
-            out_pair[row, 5] = v_o
+            else:
+                for j in range(_TILE):
+                    i = off + j
+                    dx = dx0 - np.float32(j)
+                    power = _FHALF * ca * dx * dx + half_c_dy2 + b_dy * dx
+                    vis = _exp_neg(power)
+                    alpha = min(_ALPHA_MAX, o * vis)
+                    ok = (power >= _F0) & (alpha >= _ALPHA_MIN) & (kf <= R[o_L + j])
+                    ra = _F1 / (_F1 - alpha)
+                    t_old = R[o_T + j]
+                    tn = t_old * ra if ok else t_old
+                    R[o_T + j] = tn
+                    S[o_R + j] = _F1 if ok & (o * vis <= _ALPHA_MAX) else _F0
+                    S[o_R + _TILE + j] = alpha * tn if ok else _F0
+                    S[o_R + 2 * _TILE + j] = ra
+                    S[o_R + 3 * _TILE + j] = tn
+                    S[o_R + 4 * _TILE + j] = _F0
+                    S[o_R + 5 * _TILE + j] = _F0
+                    S[o_R + 6 * _TILE + j] = vis
+                for ch in range(n_ch):
+                    col = colors[g, ch]
+                    v_v = S[o_V + ch * npix + off:]
+                    b_v = S[o_B + ch * npix + off:]
+                    acc_c = _F0
+                    for j in range(_TILE):
+                        gv = v_v[j]
+                        fac = S[o_R + _TILE + j]
+                        S[o_R + 4 * _TILE + j] += col * gv
+                        S[o_R + 5 * _TILE + j] += b_v[j] * gv
+                        acc_c += fac * gv
+                        b_v[j] += col * fac
+                    vcol[ch] += acc_c
+                for j in range(_TILE):
+                    i = off + j
+                    dx = dx0 - np.float32(j)
+                    ra = S[o_R + 2 * _TILE + j]
+                    v_al = S[o_R + j] * (S[o_R + 3 * _TILE + j] * S[o_R + 4 * _TILE + j]
+                                         - ra * S[o_R + 5 * _TILE + j] + ra * R[o_E + j])
+                    vis = S[o_R + 6 * _TILE + j]
+                    v_sig = -o * vis * v_al
+                    v_ca += _FHALF * dx * dx * v_sig
+                    v_cb += dx * dy * v_sig
+                    v_cc += _FHALF * dy * dy * v_sig
+                    v_mx += v_sig * (ca * dx + cb * dy)
+                    v_my += v_sig * (cb * dx + cc * dy)
+                    v_o += vis * v_al
+        if not touched:
+            continue
+        row = pair_slot[k]
+        out_pair[row, 0] = v_mx
+        out_pair[row, 1] = v_my
+        out_pair[row, 2] = v_ca
+        out_pair[row, 3] = v_cb
+        out_pair[row, 4] = v_cc
+        out_pair[row, 5] = v_o
+        if n_ch == 3:
+            out_pair[row, 6] = vc0
+            out_pair[row, 7] = vc1
+            out_pair[row, 8] = vc2
+        else:
             for ch in range(n_ch):
                 out_pair[row, 6 + ch] = vcol[ch]
 

@@ -11,6 +11,15 @@ Threads: the kernels use ``numba.set_num_threads(n)`` before every call, with ``
 ``NUMBA_NUM_THREADS``). First use compiles the kernels (about a minute); the machine code is
 cached on disk by numba (``cache=True``, in ``__pycache__`` next to the module or under
 ``NUMBA_CACHE_DIR``) and the wait is announced with one line on stderr.
+
+Threading layer: unless the user chose one (``NUMBA_THREADING_LAYER`` or
+``numba.config.THREADING_LAYER``), numba's ``workqueue`` layer is selected before the first
+parallel launch. GNU OpenMP (numba's default here) keeps its workers spinning after each
+kernel, which was measured to slow the PyTorch code between kernels by up to 50x on a busy
+2-core machine, and it is not fork-safe (data-loader workers). ``workqueue`` is not safe for
+concurrent calls from several Python threads, so kernel launches here are serialized by a lock.
+Tiles differ a lot in cost, so the raster kernels are scheduled dynamically in small chunks
+(``numba.parallel_chunksize``).
 """
 from __future__ import annotations
 
@@ -33,6 +42,8 @@ log = logging.getLogger(__name__)
 
 _K = None
 _K_LOCK = threading.Lock()
+_RUN_LOCK = threading.RLock()  # serializes kernel launches (workqueue layer is not threadsafe)
+_TILE_CHUNK = 2  # tiles handed to a thread at a time
 _THREADS: Optional[int] = None
 COMPILE_MESSAGE = "compiling CPU rasterizer kernels (first use, cached afterwards)..."
 
@@ -76,6 +87,7 @@ def kernels():
     with _K_LOCK:
         if _K is not None:
             return _K
+        _configure_numba()
         from . import _kernels as K
 
         fns = (K.project_fwd, K.project_bwd, K.bin_pairs, K.raster_fwd, K.raster_bwd,
@@ -94,6 +106,13 @@ def kernels():
                   file=sys.stderr, flush=True)
         _K = K
         return _K
+
+
+def _configure_numba() -> None:
+    import numba
+
+    if "NUMBA_THREADING_LAYER" not in os.environ and numba.config.THREADING_LAYER == "default":
+        numba.config.THREADING_LAYER = "workqueue"  # no-op once numba has launched threads
 
 
 def _warmup(K) -> None:
@@ -148,11 +167,12 @@ class _Proj:
 
 def _project_np(K, means, quats, scales, opac, cam: _CamParams) -> _Proj:
     p = _Proj(means.shape[0])
-    _apply_threads()
-    K.project_fwd(means, quats, scales, opac, cam.viewmat, cam.fx, cam.fy, cam.cx, cam.cy,
-                  cam.width, cam.height, cam.near, cam.far, EPS2D, ALPHA_MIN, EXTEND_MAX,
-                  CLIP_MARGIN, cam.tiles_x, cam.tiles_y, p.means2d, p.conics, p.depths, p.radii,
-                  p.rect)
+    with _RUN_LOCK:
+        _apply_threads()
+        K.project_fwd(means, quats, scales, opac, cam.viewmat, cam.fx, cam.fy, cam.cx, cam.cy,
+                      cam.width, cam.height, cam.near, cam.far, EPS2D, ALPHA_MIN, EXTEND_MAX,
+                      CLIP_MARGIN, cam.tiles_x, cam.tiles_y, p.means2d, p.conics, p.depths,
+                      p.radii, p.rect)
     return p
 
 
@@ -161,11 +181,13 @@ def _project_bwd_np(K, means, quats, scales, cam: _CamParams, proj: _Proj, v_mea
     v_means = np.empty((n, 3))
     v_quats = np.empty((n, 4))
     v_scales = np.empty((n, 3))
-    _apply_threads()
-    K.project_bwd(means, quats, scales, cam.viewmat, cam.fx, cam.fy, cam.cx, cam.cy,
-                  cam.width, cam.height, CLIP_MARGIN, proj.radii, proj.conics,
-                  np.ascontiguousarray(v_means2d, dtype=np.float64),
-                  np.ascontiguousarray(v_conics, dtype=np.float64), v_means, v_quats, v_scales)
+    with _RUN_LOCK:
+        _apply_threads()
+        K.project_bwd(means, quats, scales, cam.viewmat, cam.fx, cam.fy, cam.cx, cam.cy,
+                      cam.width, cam.height, CLIP_MARGIN, proj.radii, proj.conics,
+                      np.ascontiguousarray(v_means2d, dtype=np.float64),
+                      np.ascontiguousarray(v_conics, dtype=np.float64), v_means, v_quats,
+                      v_scales)
     return v_means, v_quats, v_scales
 
 
@@ -190,18 +212,25 @@ def _raster_fwd_np(K, proj: _Proj, opac32, colors32, bg32, cam: _CamParams,
     st.means2d = proj.means2d.astype(np.float32) if means2d32 is None else means2d32
     st.conics = proj.conics.astype(np.float32) if conics32 is None else conics32
     order = _sorted_visible(proj.depths, proj.radii, proj.rect)
-    n_threads = _apply_threads()
     n_tiles = cam.tiles_x * cam.tiles_y
-    n_chunks = max(1, min(4 * n_threads, order.shape[0]))
-    st.tile_start, st.pair_gauss, st.pair_slot, st.gauss_start = K.bin_pairs(
-        order, proj.rect, cam.tiles_x, n_tiles, n_chunks)
-    st.n_pairs = int(st.pair_gauss.shape[0])
     h, w, c = cam.height, cam.width, colors32.shape[1]
     image = np.empty((h, w, c), np.float32)
     st.T = np.empty((h, w), np.float32)
     st.last = np.empty((h, w), np.int64)
-    K.raster_fwd(st.means2d, st.conics, opac32, colors32, bg32, proj.radii, st.tile_start,
-                 st.pair_gauss, w, h, cam.tiles_x, image, st.T, st.last)
+    import numba
+
+    with _RUN_LOCK:
+        n_threads = _apply_threads()
+        n_chunks = max(1, min(4 * n_threads, order.shape[0]))
+        st.tile_start, st.pair_gauss, st.pair_slot, st.gauss_start = K.bin_pairs(
+            order, proj.rect, cam.tiles_x, n_tiles, n_chunks)
+        st.n_pairs = int(st.pair_gauss.shape[0])
+        if n_tiles and int(np.diff(st.tile_start).max()) >= 1 << 24:
+            raise ValueError("more than 2^24 Gaussians overlap one 16x16 tile; the CPU "
+                             "rasterizer stores tile-local indices as float32")
+        with numba.parallel_chunksize(_TILE_CHUNK):
+            K.raster_fwd(st.means2d, st.conics, opac32, colors32, bg32, proj.radii,
+                         st.tile_start, st.pair_gauss, w, h, cam.tiles_x, image, st.T, st.last)
     return st, image
 
 
@@ -211,15 +240,19 @@ def _raster_bwd_np(K, proj: _Proj, opac32, colors32, bg32, cam: _CamParams, st, 
         st = st[0]
     n, c = colors32.shape
     pair = np.zeros((st.n_pairs, 6 + c), np.float32)
-    _apply_threads()
-    K.raster_bwd(st.means2d, st.conics, opac32, colors32, bg32, proj.radii, st.tile_start,
-                 st.pair_gauss, st.pair_slot, cam.width, cam.height, cam.tiles_x, st.T,
-                 st.last, v_image, v_alpha, pair)
     v_means2d = np.empty((n, 2), np.float32)
     v_conics = np.empty((n, 3), np.float32)
     v_opac = np.empty(n, np.float32)
     v_colors = np.empty((n, c), np.float32)
-    K.reduce_pairs(pair, st.gauss_start, v_means2d, v_conics, v_opac, v_colors)
+    import numba
+
+    with _RUN_LOCK:
+        _apply_threads()
+        with numba.parallel_chunksize(_TILE_CHUNK):
+            K.raster_bwd(st.means2d, st.conics, opac32, colors32, bg32, proj.radii,
+                         st.tile_start, st.pair_gauss, st.pair_slot, cam.width, cam.height,
+                         cam.tiles_x, st.T, st.last, v_image, v_alpha, pair)
+        K.reduce_pairs(pair, st.gauss_start, v_means2d, v_conics, v_opac, v_colors)
     return v_means2d, v_conics, v_opac, v_colors
 
 
