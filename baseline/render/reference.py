@@ -312,4 +312,9 @@ def render_projected(proj: Projection, means2d: Tensor, opacities: Tensor, color
         color = torch.cat(rows_c, dim=0)
         t_final = torch.cat(rows_t, dim=0)
     image = color + t_final[..., None] * background.to(dt)
-    return image, 1 - t_final
+    alpha = 1 - t_final
+    if use_ckpt and not image.requires_grad:
+        # nothing was drawn: keep the outputs in the graph so backward() yields zero grads
+        zero = 0 * (means2d.sum() + proj.conics.sum() + opac.sum() + colors_c.sum())
+        image, alpha = image + zero, alpha + zero
+    return image, alpha
