@@ -1,0 +1,364 @@
+"""Compiled CPU backend: numba kernels wrapped as two ``torch.autograd.Function`` objects.
+
+``_Project`` (means, quats, scales -> means2d, conics, ...) and ``_Rasterize`` (means2d, conics,
+opacities, colors, background -> image, alpha) are separate so that ``means2d`` is a real node
+of the autograd graph: ``means2d.retain_grad()`` then gives dLoss/d(means2d) in pixels, as in
+gsplat. Kernels live in :mod:`baseline.render._kernels` (forward and backward of projection,
+tile binning, compositing, per-pair gradient reduction); this module only converts tensors.
+
+Threads: the kernels use ``numba.set_num_threads(n)`` before every call, with ``n`` from
+:func:`set_num_threads` or else ``torch.get_num_threads()`` (capped by numba's pool size,
+``NUMBA_NUM_THREADS``). First use compiles the kernels (about a minute); the machine code is
+cached on disk by numba (``cache=True``, in ``__pycache__`` next to the module or under
+``NUMBA_CACHE_DIR``) and the wait is announced with one line on stderr.
+
+Threading layer: unless the user chose one (``NUMBA_THREADING_LAYER`` or
+``numba.config.THREADING_LAYER``), numba's ``workqueue`` layer is selected before the first
+parallel launch. GNU OpenMP (numba's default here) keeps its workers spinning after each
+kernel, which was measured to slow the PyTorch code between kernels by up to 50x on a busy
+2-core machine, and it is not fork-safe (data-loader workers). ``workqueue`` is not safe for
+concurrent calls from several Python threads, so kernel launches here are serialized by a lock.
+Tiles differ a lot in cost, so the raster kernels are scheduled dynamically in small chunks
+(``numba.parallel_chunksize``).
+"""
+from __future__ import annotations
+
+import logging
+import math
+import os
+import sys
+import threading
+import time
+from typing import Optional, Tuple
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from .conventions import (ALPHA_MIN, CLIP_MARGIN, EPS2D, EXTEND_MAX, TILE_SIZE, RenderOutput,
+                          check_inputs)
+
+log = logging.getLogger(__name__)
+
+_K = None
+_K_LOCK = threading.Lock()
+_RUN_LOCK = threading.RLock()  # serializes kernel launches (workqueue layer is not threadsafe)
+_TILE_CHUNK = 2  # tiles handed to a thread at a time
+_THREADS: Optional[int] = None
+COMPILE_MESSAGE = "compiling CPU rasterizer kernels (first use, cached afterwards)..."
+
+
+def set_num_threads(n: Optional[int]) -> None:
+    """Threads used by the CPU kernels; ``None`` follows ``torch.get_num_threads()``."""
+    global _THREADS
+    if n is not None and int(n) < 1:
+        raise ValueError(f"thread count must be >= 1, got {n}")
+    _THREADS = None if n is None else int(n)
+
+
+def get_num_threads() -> int:
+    """Threads the CPU kernels will use (after capping by numba's thread pool size)."""
+    import numba
+
+    n = _THREADS if _THREADS is not None else torch.get_num_threads()
+    return max(1, min(int(n), int(numba.config.NUMBA_NUM_THREADS)))
+
+
+def _apply_threads() -> int:
+    import numba
+
+    n = get_num_threads()
+    numba.set_num_threads(n)
+    return n
+
+
+def _cache_is_warm(dispatcher) -> bool:
+    try:
+        return os.path.exists(dispatcher._cache._cache_file._index_path)
+    except Exception:  # private numba API: be conservative and announce
+        return False
+
+
+def kernels():
+    """The kernel module, compiled (or loaded from numba's disk cache) on first use."""
+    global _K
+    if _K is not None:
+        return _K
+    with _K_LOCK:
+        if _K is not None:
+            return _K
+        _configure_numba()
+        from . import _kernels as K
+
+        fns = (K.project_fwd, K.project_bwd, K.bin_pairs, K.raster_fwd, K.raster_bwd,
+               K.reduce_pairs)
+        cold = not all(_cache_is_warm(f) for f in fns)
+        if cold:
+            print(COMPILE_MESSAGE, file=sys.stderr, flush=True)
+            log.info(COMPILE_MESSAGE)
+        t0 = time.perf_counter()
+        _warmup(K)
+        dt = time.perf_counter() - t0
+        if cold:
+            log.info("CPU rasterizer kernels compiled in %.1f s", dt)
+        elif dt > 3.0:  # a stale cache (changed source, other CPU) was recompiled
+            print(f"CPU rasterizer kernels recompiled ({dt:.0f} s, cached afterwards)",
+                  file=sys.stderr, flush=True)
+        _K = K
+        return _K
+
+
+def _configure_numba() -> None:
+    import numba
+
+    if "NUMBA_THREADING_LAYER" not in os.environ and numba.config.THREADING_LAYER == "default":
+        numba.config.THREADING_LAYER = "workqueue"  # no-op once numba has launched threads
+
+
+def _warmup(K) -> None:
+    """Run every kernel once on a tiny scene with the exact argument types used later."""
+    n = 3
+    means = np.array([[0.0, 0.0, 2.0], [0.1, 0.0, 3.0], [5.0, 5.0, -1.0]])
+    quats = np.array([[1.0, 0.0, 0.0, 0.0]] * n)
+    scales = np.full((n, 3), 0.1)
+    opac = np.full(n, 0.5)
+    colors = np.ones((n, 3), np.float32)
+    cam = _CamParams(np.eye(4), 8.0, 8.0, 4.0, 4.0, 8, 8, 0.01, 1e10)
+    proj = _project_np(K, means, quats, scales, opac, cam)
+    st = _raster_fwd_np(K, proj, opac.astype(np.float32), colors, np.zeros(3, np.float32), cam)
+    _raster_bwd_np(K, proj, opac.astype(np.float32), colors, np.zeros(3, np.float32), cam, st,
+                   np.ones((8, 8, 3), np.float32), np.ones((8, 8), np.float32))
+    _project_bwd_np(K, means, quats, scales, cam, proj, np.ones((n, 2)), np.ones((n, 3)))
+
+
+class _CamParams:
+    """Camera as plain numbers for the kernels."""
+
+    __slots__ = ("viewmat", "fx", "fy", "cx", "cy", "width", "height", "near", "far",
+                 "tiles_x", "tiles_y")
+
+    def __init__(self, viewmat, fx, fy, cx, cy, width, height, near, far):
+        self.viewmat = np.ascontiguousarray(viewmat, dtype=np.float64)
+        self.fx, self.fy, self.cx, self.cy = float(fx), float(fy), float(cx), float(cy)
+        self.width, self.height = int(width), int(height)
+        self.near, self.far = float(near), float(far)
+        self.tiles_x = (self.width + TILE_SIZE - 1) // TILE_SIZE
+        self.tiles_y = (self.height + TILE_SIZE - 1) // TILE_SIZE
+
+    @classmethod
+    def from_camera(cls, camera) -> "_CamParams":
+        vm = camera.viewmat.detach().to("cpu", torch.float64).numpy()
+        return cls(vm, camera.fx, camera.fy, camera.cx, camera.cy, camera.width, camera.height,
+                   camera.near, camera.far)
+
+
+class _Proj:
+    """Projection results (NumPy, float64 except radii/rect)."""
+
+    __slots__ = ("means2d", "conics", "depths", "radii", "rect")
+
+    def __init__(self, n):
+        self.means2d = np.empty((n, 2))
+        self.conics = np.empty((n, 3))
+        self.depths = np.empty(n)
+        self.radii = np.empty((n, 2), np.int32)
+        self.rect = np.empty((n, 4), np.int32)
+
+
+def _project_np(K, means, quats, scales, opac, cam: _CamParams) -> _Proj:
+    p = _Proj(means.shape[0])
+    with _RUN_LOCK:
+        _apply_threads()
+        K.project_fwd(means, quats, scales, opac, cam.viewmat, cam.fx, cam.fy, cam.cx, cam.cy,
+                      cam.width, cam.height, cam.near, cam.far, EPS2D, ALPHA_MIN, EXTEND_MAX,
+                      CLIP_MARGIN, cam.tiles_x, cam.tiles_y, p.means2d, p.conics, p.depths,
+                      p.radii, p.rect)
+    return p
+
+
+def _project_bwd_np(K, means, quats, scales, cam: _CamParams, proj: _Proj, v_means2d, v_conics):
+    n = means.shape[0]
+    v_means = np.empty((n, 3))
+    v_quats = np.empty((n, 4))
+    v_scales = np.empty((n, 3))
+    with _RUN_LOCK:
+        _apply_threads()
+        K.project_bwd(means, quats, scales, cam.viewmat, cam.fx, cam.fy, cam.cx, cam.cy,
+                      cam.width, cam.height, CLIP_MARGIN, proj.radii, proj.conics,
+                      np.ascontiguousarray(v_means2d, dtype=np.float64),
+                      np.ascontiguousarray(v_conics, dtype=np.float64), v_means, v_quats,
+                      v_scales)
+    return v_means, v_quats, v_scales
+
+
+class _RasterState:
+    """What the forward keeps for the backward (NumPy arrays)."""
+
+    __slots__ = ("means2d", "conics", "tile_start", "pair_gauss", "pair_slot", "gauss_start",
+                 "T", "last", "n_pairs")
+
+
+def _sorted_visible(depths: np.ndarray, radii: np.ndarray, rect: np.ndarray) -> np.ndarray:
+    """[M] int64 ids of binned Gaussians, front to back (stable: ties keep index order)."""
+    vis = np.nonzero((radii.max(axis=1) > 0) & (rect[:, 2] > rect[:, 0])
+                     & (rect[:, 3] > rect[:, 1]))[0]
+    order = vis[np.argsort(depths[vis], kind="stable")]
+    return np.ascontiguousarray(order, dtype=np.int64)
+
+
+def _raster_fwd_np(K, proj: _Proj, opac32, colors32, bg32, cam: _CamParams,
+                   means2d32=None, conics32=None):
+    st = _RasterState()
+    st.means2d = proj.means2d.astype(np.float32) if means2d32 is None else means2d32
+    st.conics = proj.conics.astype(np.float32) if conics32 is None else conics32
+    order = _sorted_visible(proj.depths, proj.radii, proj.rect)
+    n_tiles = cam.tiles_x * cam.tiles_y
+    h, w, c = cam.height, cam.width, colors32.shape[1]
+    image = np.empty((h, w, c), np.float32)
+    st.T = np.empty((h, w), np.float32)
+    st.last = np.empty((h, w), np.int64)
+    import numba
+
+    with _RUN_LOCK:
+        n_threads = _apply_threads()
+        n_chunks = max(1, min(4 * n_threads, order.shape[0]))
+        st.tile_start, st.pair_gauss, st.pair_slot, st.gauss_start = K.bin_pairs(
+            order, proj.rect, cam.tiles_x, n_tiles, n_chunks)
+        st.n_pairs = int(st.pair_gauss.shape[0])
+        if n_tiles and int(np.diff(st.tile_start).max()) >= 1 << 24:
+            raise ValueError("more than 2^24 Gaussians overlap one 16x16 tile; the CPU "
+                             "rasterizer stores tile-local indices as float32")
+        with numba.parallel_chunksize(_TILE_CHUNK):
+            K.raster_fwd(st.means2d, st.conics, opac32, colors32, bg32, proj.radii,
+                         st.tile_start, st.pair_gauss, w, h, cam.tiles_x, image, st.T, st.last)
+    return st, image
+
+
+def _raster_bwd_np(K, proj: _Proj, opac32, colors32, bg32, cam: _CamParams, st, v_image,
+                   v_alpha):
+    if isinstance(st, tuple):  # (state, image) as returned by _raster_fwd_np
+        st = st[0]
+    n, c = colors32.shape
+    pair = np.zeros((st.n_pairs, 6 + c), np.float32)
+    v_means2d = np.empty((n, 2), np.float32)
+    v_conics = np.empty((n, 3), np.float32)
+    v_opac = np.empty(n, np.float32)
+    v_colors = np.empty((n, c), np.float32)
+    import numba
+
+    with _RUN_LOCK:
+        _apply_threads()
+        with numba.parallel_chunksize(_TILE_CHUNK):
+            K.raster_bwd(st.means2d, st.conics, opac32, colors32, bg32, proj.radii,
+                         st.tile_start, st.pair_gauss, st.pair_slot, cam.width, cam.height,
+                         cam.tiles_x, st.T, st.last, v_image, v_alpha, pair)
+        K.reduce_pairs(pair, st.gauss_start, v_means2d, v_conics, v_opac, v_colors)
+    return v_means2d, v_conics, v_opac, v_colors
+
+
+def _np(t: Tensor, dtype) -> np.ndarray:
+    return np.ascontiguousarray(t.detach().to("cpu", dtype).numpy())
+
+
+class _Project(torch.autograd.Function):
+    """means [N,3], quats [N,4], scales [N,3] (+ opacities [N], non-diff) -> means2d [N,2],
+    conics [N,3] (differentiable), depths [N], radii [N,2] int32, rect [N,4] int32."""
+
+    @staticmethod
+    def forward(ctx, means, quats, scales, opacities, cam: _CamParams, holder: dict):
+        K = kernels()
+        m = _np(means, torch.float64)
+        q = _np(quats, torch.float64)
+        s = _np(scales, torch.float64)
+        proj = _project_np(K, m, q, s, _np(opacities, torch.float64), cam)
+        holder["proj"] = proj  # float64 results for the rasterizer (depth sort, radii, rects)
+        ctx.cam = cam
+        ctx.proj = proj
+        ctx.np_inputs = (m, q, s)
+        ctx.meta = (means.dtype, means.device, quats.dtype, scales.dtype)
+        dev = means.device
+        means2d = torch.from_numpy(proj.means2d).to(dev, means.dtype)
+        conics = torch.from_numpy(proj.conics).to(dev, means.dtype)
+        depths = torch.from_numpy(proj.depths).to(dev, means.dtype)
+        radii = torch.from_numpy(proj.radii).to(dev)
+        rect = torch.from_numpy(proj.rect).to(dev)
+        ctx.mark_non_differentiable(depths, radii, rect)
+        return means2d, conics, depths, radii, rect
+
+    @staticmethod
+    def backward(ctx, v_means2d, v_conics, _v_depths, _v_radii, _v_rect):
+        m, q, s = ctx.np_inputs
+        n = m.shape[0]
+        vm2 = np.zeros((n, 2)) if v_means2d is None else _np(v_means2d, torch.float64)
+        vc = np.zeros((n, 3)) if v_conics is None else _np(v_conics, torch.float64)
+        v_means, v_quats, v_scales = _project_bwd_np(kernels(), m, q, s, ctx.cam, ctx.proj,
+                                                     vm2, vc)
+        dtype_m, dev, dtype_q, dtype_s = ctx.meta
+        return (torch.from_numpy(v_means).to(dev, dtype_m),
+                torch.from_numpy(v_quats).to(dev, dtype_q),
+                torch.from_numpy(v_scales).to(dev, dtype_s), None, None, None)
+
+
+class _Rasterize(torch.autograd.Function):
+    """means2d [N,2], conics [N,3], opacities [N], colors [N,C], background [C]
+    (+ projection results) -> image [H,W,C], alpha [H,W]."""
+
+    @staticmethod
+    def forward(ctx, means2d, conics, opacities, colors, background, proj: _Proj,
+                cam: _CamParams):
+        K = kernels()
+        opac32 = _np(opacities, torch.float32)
+        colors32 = _np(colors, torch.float32)
+        bg32 = _np(background, torch.float32)
+        st, image = _raster_fwd_np(K, proj, opac32, colors32, bg32, cam,
+                                   _np(means2d, torch.float32), _np(conics, torch.float32))
+        ctx.state = (proj, opac32, colors32, bg32, cam, st)
+        ctx.meta = (means2d.dtype, conics.dtype, opacities.dtype, colors.dtype,
+                    background.dtype, colors.device)
+        dev = colors.device
+        image_t = torch.from_numpy(image).to(dev, colors.dtype)
+        alpha_t = torch.from_numpy(1.0 - st.T).to(dev, colors.dtype)
+        return image_t, alpha_t
+
+    @staticmethod
+    def backward(ctx, v_image, v_alpha):
+        proj, opac32, colors32, bg32, cam, st = ctx.state
+        h, w, c = cam.height, cam.width, colors32.shape[1]
+        vi = np.zeros((h, w, c), np.float32) if v_image is None else _np(v_image, torch.float32)
+        va = np.zeros((h, w), np.float32) if v_alpha is None else _np(v_alpha, torch.float32)
+        v_m2d, v_con, v_op, v_col = _raster_bwd_np(kernels(), proj, opac32, colors32, bg32, cam,
+                                                   st, vi, va)
+        dt_m, dt_c, dt_o, dt_col, dt_bg, dev = ctx.meta
+        v_bg = None
+        if ctx.needs_input_grad[4]:
+            v_bg = torch.from_numpy((st.T[..., None] * vi).sum(axis=(0, 1))).to(dev, dt_bg)
+        return (torch.from_numpy(v_m2d).to(dev, dt_m), torch.from_numpy(v_con).to(dev, dt_c),
+                torch.from_numpy(v_op).to(dev, dt_o), torch.from_numpy(v_col).to(dev, dt_col),
+                v_bg, None, None)
+
+
+def rasterize_cpu(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor,
+                  colors: Tensor, camera, background: Optional[Tensor] = None) -> RenderOutput:
+    """Render with the compiled CPU backend (see :func:`baseline.render.rasterize`).
+
+    Args:
+        means [N, 3], quats [N, 4] (wxyz), scales [N, 3] (positive), opacities [N] in [0, 1],
+        colors [N, C]; camera: :class:`baseline.camera.Camera`; background [C] or None.
+    Returns:
+        :class:`RenderOutput` with image [H, W, C], alpha [H, W], means2d [N, 2] (retains grad),
+        radii [N] int32, visible [N] bool, depths [N]. Tensors on the inputs' device (computed
+        on the CPU; CUDA inputs are copied).
+    """
+    background = check_inputs(means, quats, scales, opacities, colors, camera, background)
+    cam = _CamParams.from_camera(camera)
+    holder: dict = {}
+    means2d, conics, depths, radii_xy, _rect = _Project.apply(means, quats, scales, opacities,
+                                                              cam, holder)
+    if means2d.requires_grad:
+        means2d.retain_grad()
+    proj = holder["proj"]
+    image, alpha = _Rasterize.apply(means2d, conics, opacities, colors, background, proj, cam)
+    radii = radii_xy.max(dim=1).values.to(torch.int32) if radii_xy.numel() else \
+        torch.zeros(0, dtype=torch.int32, device=means.device)
+    return RenderOutput(image=image, alpha=alpha, means2d=means2d, radii=radii,
+                        visible=radii > 0, depths=depths, backend="cpu")
