@@ -31,6 +31,24 @@ except ImportError:  # pragma: no cover
     constriction = None
 
 
+class _CoderError(Exception):
+    pass
+
+
+def _call_coder(fn, *args):
+    """Run a constriction call; any failure (including a Rust panic, which pyo3 raises as a
+    BaseException) becomes a ``_CoderError``. Interrupts still propagate."""
+    try:
+        return fn(*args)
+    except (KeyboardInterrupt, SystemExit, GeneratorExit):
+        raise
+    except BaseException as e:  # noqa: BLE001 - pyo3's PanicException is a BaseException
+        raise _CoderError(f"{type(e).__name__}: {e}") from None
+
+
+_CODER_ERRORS = (_CoderError,)
+
+
 def _require_constriction():
     if constriction is None:  # pragma: no cover
         raise ImportError("entropy coding needs the 'constriction' package (pip install constriction)")
@@ -103,9 +121,9 @@ def decode_bernoulli(blob, expected_n: Optional[int] = None, what: str = "bernou
     words = _bytes_to_words(payload, what)
     c = _require_constriction()
     try:
-        dec = c.stream.queue.RangeDecoder(words)
-        out = dec.decode(c.stream.model.Bernoulli(p, perfect=False), int(n))
-    except Exception as e:  # corrupt payloads
+        dec = _call_coder(c.stream.queue.RangeDecoder, words)
+        out = _call_coder(dec.decode, c.stream.model.Bernoulli(p, perfect=False), int(n))
+    except _CODER_ERRORS as e:  # corrupt payloads
         raise BitstreamError(f"{what}: range decoding failed ({e})") from None
     out = np.asarray(out, dtype=np.uint8)
     if int(out.sum()) != n1:
@@ -152,10 +170,12 @@ class GaussianStreamEncoder:
             s = np.clip(s, -self.limit - 1, self.limit + 1)
         s32 = s.astype(np.int32)
         smin, smax = int(s32.min()), int(s32.max())
+        self._chunks.append((int(s.size), smin, smax))
+        if smin == smax:  # a constant chunk needs no payload (and constriction needs smax > smin)
+            return
         model = constriction.stream.model.QuantizedGaussian(smin, smax)
         for i in range(0, s32.size, CALL_SYMBOLS):  # short calls: other threads get the GIL
             self._enc.encode(s32[i:i + CALL_SYMBOLS], model, m[i:i + CALL_SYMBOLS], d[i:i + CALL_SYMBOLS])
-        self._chunks.append((int(s.size), smin, smax))
 
     def finish(self) -> bytes:
         esc = np.concatenate(self._escapes) if self._escapes else np.zeros(0, np.int64)
@@ -192,7 +212,10 @@ class GaussianStreamDecoder:
             if n and not (-self.limit - 1 <= smin <= smax <= self.limit + 1):
                 raise BitstreamError(f"{what}: invalid symbol range [{smin}, {smax}]")
         words = _bytes_to_words(blob[off:], what)
-        self._dec = c.stream.queue.RangeDecoder(words)
+        try:
+            self._dec = _call_coder(c.stream.queue.RangeDecoder, words)
+        except _CoderError as e:
+            raise BitstreamError(f"{what}: {e}") from None
         self._next = 0
         self._esc_pos = 0
 
@@ -210,12 +233,16 @@ class GaussianStreamDecoder:
             return np.zeros(0, np.int64)
         if not (np.isfinite(m).all() and np.isfinite(d).all() and (d > 0).all()):
             raise ValueError("Gaussian decoding needs finite means and positive finite stds")
-        try:
-            model = constriction.stream.model.QuantizedGaussian(int(smin), int(smax))
-            s = np.concatenate([np.asarray(self._dec.decode(model, m[i:i + CALL_SYMBOLS], d[i:i + CALL_SYMBOLS]),
-                                           dtype=np.int64) for i in range(0, n, CALL_SYMBOLS)])
-        except Exception as e:
-            raise BitstreamError(f"{self.what}: range decoding failed ({e})") from None
+        if smin == smax:
+            s = np.full(n, smin, dtype=np.int64)
+        else:
+            try:
+                model = _call_coder(constriction.stream.model.QuantizedGaussian, int(smin), int(smax))
+                s = np.concatenate([np.asarray(_call_coder(self._dec.decode, model, m[i:i + CALL_SYMBOLS],
+                                                           d[i:i + CALL_SYMBOLS]), dtype=np.int64)
+                                    for i in range(0, n, CALL_SYMBOLS)])
+            except _CODER_ERRORS as e:
+                raise BitstreamError(f"{self.what}: range decoding failed ({e})") from None
         esc = np.abs(s) > self.limit
         k = int(esc.sum())
         if k:

@@ -42,6 +42,7 @@ same way on both machines; it is single-threaded and deterministic for identical
 from __future__ import annotations
 
 import math
+import struct
 from concurrent.futures import ThreadPoolExecutor
 from typing import Dict, Optional, Sequence, Tuple
 
@@ -60,7 +61,8 @@ from baseline.hac.quant import CLAMP_STEPS, Q_FLOOR, adaptive_q, noise_quantize,
 
 LIKELIHOOD_FLOOR = 1e-6
 SCALE_FLOOR = 1e-9
-_C_LIMIT = float(2 ** 40)  # |round(mu / Q)| cap (keeps symbols integral in float64)
+_C_LIMIT = float(2 ** 40)
+_BLOB_HDR = struct.Struct("<I")  # anchors per coding chunk, then the Gaussian stream  # |round(mu / Q)| cap (keeps symbols integral in float64)
 
 Params = Dict[str, Tuple[torch.Tensor, torch.Tensor, torch.Tensor]]
 
@@ -191,13 +193,21 @@ class EntropyModel(nn.Module):
                 sel = x[m] if m is not None else x
                 x_means[a.name] = sel.mean() if sel.numel() else torch.zeros((), dtype=torch.float64)
             coders = {a.name: GaussianStreamEncoder(self.escape_limit) for a in self.attrs}
+            chunk = self.chunk
         else:
-            coders = {}
+            coders, chunks = {}, set()
             for a in self.attrs:
                 if a.name not in blobs:
                     raise BitstreamError(f"missing coded section '{a.name}'")
-                coders[a.name] = GaussianStreamDecoder(blobs[a.name], what=a.name,
+                blob = bytes(blobs[a.name])
+                if len(blob) < _BLOB_HDR.size:
+                    raise BitstreamError(f"{a.name}: truncated attribute stream")
+                chunks.add(_BLOB_HDR.unpack_from(blob)[0])
+                coders[a.name] = GaussianStreamDecoder(blob[_BLOB_HDR.size:], what=a.name,
                                                        escape_limit=self.escape_limit)
+            chunk = chunks.pop()
+            if chunks or chunk <= 0:
+                raise BitstreamError("attribute streams disagree on (or hold an invalid) chunk size")
         outs = {a.name: torch.zeros(n, a.dims, dtype=torch.float64) for a in self.attrs}
         ctx = self._exact_context()
 
@@ -212,7 +222,8 @@ class EntropyModel(nn.Module):
                 res[a.name] = (c, mean / q - c, scale / q, q)
             return res
 
-        bounds = [(s, min(n, s + self.chunk)) for s in range(0, n, self.chunk)]
+        # the decoder follows the encoder's chunking (stored in each attribute stream)
+        bounds = [(s, min(n, s + chunk)) for s in range(0, n, chunk)]
         # The (torch, GIL-releasing) model of chunk i+1 is computed in a worker thread while the
         # main thread range-codes chunk i (constriction holds the GIL). Exactness does not depend
         # on it: the model is bit-reproducible under any threading.
@@ -257,7 +268,7 @@ class EntropyModel(nn.Module):
                 pool.shutdown(wait=True, cancel_futures=True)
         values_q = {k: v.to(device=out_device, dtype=torch.float32) for k, v in outs.items()}
         if encode:
-            return {a.name: coders[a.name].finish() for a in self.attrs}, values_q
+            return {a.name: _BLOB_HDR.pack(chunk) + coders[a.name].finish() for a in self.attrs}, values_q
         for a in self.attrs:
             coders[a.name].check_done()
         return values_q
