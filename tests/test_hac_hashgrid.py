@@ -233,3 +233,16 @@ def test_auto_layout_rule():
     assert vox["resolutions_3d"] == (18, 24, 33, 44, 59, 80) and vox["resolutions_2d"] == (130,)
     g = BinaryHashGrid(**small)
     assert g.n_binary < BinaryHashGrid().n_binary
+
+
+def test_general_hash_path_matches_brute_force():
+    # res * rows >= 2^31 takes the int64 hash path (uint32 XOR hash, then modulo rows)
+    torch.manual_seed(6)
+    g = BinaryHashGrid(resolutions_3d=(2100,), log2_table_3d=20, resolutions_2d=(5000, 6), log2_table_2d=20,
+                       n_features=1, init_range=1.0)
+    assert [r[2] for r in g.grids["xyz"]._runs] == ["hash64"]
+    assert [r[2] for r in g.grids["xy"]._runs] == ["hash64", "dense"]
+    g.set_bounds([0, 0, 0], [1, 1, 1])
+    pts = special_points(np.zeros(3), np.ones(3), np.random.default_rng(7), 10)
+    got = g(torch.from_numpy(pts)).detach().numpy()
+    np.testing.assert_allclose(got, brute_force(g, pts), rtol=0, atol=1e-12)

@@ -116,28 +116,28 @@ class GridLevels(nn.Module):
         self.register_buffer("_res", torch.tensor(resolutions, dtype=torch.int64), persistent=False)
         self.register_buffer("_rows", torch.tensor(rows, dtype=torch.int64), persistent=False)
         self.register_buffer("_offsets", torch.from_numpy(offsets[:-1].copy()), persistent=False)
-        self.register_buffer("_dense", torch.tensor([r ** dim <= t for r, t in zip(resolutions, rows)]),
-                             persistent=False)
         strides = torch.tensor([[r ** d for d in range(dim)] for r in resolutions], dtype=torch.int64)
         self.register_buffer("_strides", strides, persistent=False)
-        # Levels grouped by index kind (dense / hashed with power-of-two rows / other hashed);
-        # each group's indices are computed once, then put back in level order.
+        # Runs of consecutive levels sharing an index kind: "dense"; "hash32" (power-of-two rows,
+        # small enough that (coord * (prime mod rows)) fits int32: (a ^ b) mod 2^k equals
+        # (a mod 2^k) ^ (b mod 2^k)); "hash64" (the general uint32 hash, then modulo rows).
         kinds = []
         for r, t in zip(resolutions, rows):
-            kinds.append("dense" if r ** dim <= t else ("hash2" if t & (t - 1) == 0 else "hash"))
-        order, self._groups = [], []
-        for kind in ("dense", "hash2", "hash"):
-            lv = [i for i, k in enumerate(kinds) if k == kind]
-            if lv:
-                order += lv
-                name = None
-                if len(lv) != len(kinds):
-                    name = f"_levels_{kind}"
-                    self.register_buffer(name, torch.tensor(lv, dtype=torch.int64), persistent=False)
-                self._groups.append((name, "dense" if kind == "dense" else "hash", kind == "hash2"))
-        self._has_perm = order != sorted(order)
-        self.register_buffer("_level_perm", torch.tensor(np.argsort(order), dtype=torch.int64),
-                             persistent=False)
+            if r ** dim <= t:
+                kinds.append("dense")
+            elif t & (t - 1) == 0 and r * t < 2 ** 31:
+                kinds.append("hash32")
+            else:
+                kinds.append("hash64")
+        self._runs = []
+        for i, k in enumerate(kinds):
+            if self._runs and self._runs[-1][2] == k:
+                self._runs[-1][1] = i + 1
+            else:
+                self._runs.append([i, i + 1, k])
+        self._runs = [tuple(r) for r in self._runs]
+        pmod = torch.tensor([[HASH_PRIMES[d] % t for d in range(dim)] for t in rows], dtype=torch.int64)
+        self.register_buffer("_pmod", pmod, persistent=False)
         self._index_dtype = torch.int32 if int(offsets[-1]) < 2 ** 31 else torch.int64
         self.params = nn.Parameter(torch.empty(int(offsets[-1]), self.n_features))
         self.init_range = float(init_range)
@@ -184,8 +184,8 @@ class GridLevels(nn.Module):
         pos = ut[:, :, None] * (res.to(u.dtype) - 2) + 0.5  # [dim, n, L]
         g = torch.floor(pos)
         f = pos - g
-        g = g.to(torch.int64)
-        hi_cap = res - 1
+        g = g.to(torch.int32)  # in [0, res - 1] for u in [0, 1]
+        hi_cap = (res - 1).to(torch.int32)
         gp = torch.stack([g, torch.minimum(g + 1, hi_cap)], dim=1)  # [dim, 2, n, L]
         if exact:
             w1 = torch.round(f * float(1 << WEIGHT_BITS))
@@ -194,27 +194,26 @@ class GridLevels(nn.Module):
             wp = torch.stack([1 - f, f], dim=1)
         wp = wp * ((gp > 0) & (gp < hi_cap)).to(wp.dtype)
         w = self._corner_product(wp, torch.mul)  # [C, n, L]
-        parts = []
-        for name, kind, rows_pow2 in self._groups:
-            levels = getattr(self, name) if name is not None else None
-            gl = gp if levels is None else gp.index_select(3, levels)
+        idx = None
+        for a, b, kind in self._runs:
+            gl = gp[..., a:b]
             if kind == "dense":
-                strides = self._strides if levels is None else self._strides.index_select(0, levels)
-                idx = self._corner_product(gl * strides.T[:, None, None, :], torch.add)
+                part = self._corner_product(gl * self._strides[a:b].T.to(torch.int32)[:, None, None, :], torch.add)
+            elif kind == "hash32":
+                mask = (self._rows[a:b] - 1).to(torch.int32)
+                terms = (gl * self._pmod[a:b].T.to(torch.int32)[:, None, None, :]) & mask
+                part = self._corner_product(terms, torch.bitwise_xor)
             else:
                 primes = torch.tensor(HASH_PRIMES[:self.dim], dtype=torch.int64, device=gl.device)
-                terms = gl * primes[:, None, None, None]
-                rows = self._rows if levels is None else self._rows.index_select(0, levels)
-                if rows_pow2:  # (a ^ b) mod 2^k == (a mod 2^k) ^ (b mod 2^k)
-                    idx = self._corner_product(terms & (rows - 1), torch.bitwise_xor)
-                else:
-                    idx = self._corner_product(terms & _MASK32, torch.bitwise_xor)
-                    idx = torch.remainder(idx, rows)
-            parts.append(idx)
-        idx = parts[0] if len(parts) == 1 else torch.cat(parts, dim=2)
-        if self._has_perm:
-            idx = idx.index_select(2, self._level_perm)
-        idx = (idx + self._offsets).to(self._index_dtype)
+                terms = (gl.to(torch.int64) * primes[:, None, None, None]) & _MASK32
+                part = torch.remainder(self._corner_product(terms, torch.bitwise_xor), self._rows[a:b])
+            if len(self._runs) == 1:
+                idx = part.to(self._index_dtype)
+            else:
+                if idx is None:
+                    idx = torch.empty(w.shape, dtype=self._index_dtype, device=w.device)
+                idx[..., a:b] = part
+        idx += self._offsets.to(self._index_dtype)
         return idx.permute(1, 2, 0), w.permute(1, 2, 0)
 
     def encode(self, u: torch.Tensor, table: torch.Tensor, exact: bool = False) -> torch.Tensor:
