@@ -255,6 +255,7 @@ def test_serialize_round_trip_into_fresh_model():
 
 def test_escapes_and_edge_cases():
     m = make_hac(escape_limit=50)
+    assert m.escape_limit == 50
     n = 400
     xyz = torch.rand(n, 3) * 2 - 1
     vals = {"feat": torch.randn(n, 50), "scaling": torch.rand(n, 6) * 0.01, "offsets": torch.randn(n, 30) * 0.3}
@@ -264,6 +265,10 @@ def test_escapes_and_edge_cases():
     blobs, vq = m.compress(xyz, vals, mask, return_values=True)
     assert torch.equal(m.decompress(xyz, blobs, mask)["feat"], vq["feat"])
     assert vq["feat"][0, 3] == pytest.approx(4000.0, abs=2.0)
+    # the stream carries its escape limit: a decoder configured differently still decodes it
+    other = make_hac()
+    assert other.escape_limit != 50
+    assert torch.equal(other.decompress(xyz, blobs, mask)["feat"], vq["feat"])
     # no anchors at all, and all masks off
     e = {a.name: torch.zeros(0, a.dims) for a in ATTRS}
     eb, ev = m.compress(torch.zeros(0, 3), e, torch.zeros(0, 10), return_values=True)

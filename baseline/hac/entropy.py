@@ -36,6 +36,9 @@ rounding to a coarse grid is unnecessary. The values are coded as integer symbol
 std ``scale/Q`` (constriction's leaky quantizer, range coder); the decoder returns
 ``(s + round(mu/Q)) * Q``, bit-identical to the encoder's quantized value. Weights must be at the
 stored precision before coding: :meth:`serialize` rounds them in place.
+Options common to both models: ``chunk`` (anchors per coding chunk, 32768), ``escape_limit``
+(|symbol - round(mu/Q)| beyond which a value is stored raw, 16383), ``pipeline`` (compute the
+next chunk's model in a worker thread while the range coder runs, True).
 Remaining assumption: constriction's quantizer (compiled Rust) evaluates the Gaussian CDF the
 same way on both machines; it is single-threaded and deterministic for identical inputs.
 """
@@ -61,8 +64,9 @@ from baseline.hac.quant import CLAMP_STEPS, Q_FLOOR, adaptive_q, noise_quantize,
 
 LIKELIHOOD_FLOOR = 1e-6
 SCALE_FLOOR = 1e-9
-_C_LIMIT = float(2 ** 40)
-_BLOB_HDR = struct.Struct("<I")  # anchors per coding chunk, then the Gaussian stream  # |round(mu / Q)| cap (keeps symbols integral in float64)
+_C_LIMIT = float(2 ** 40)  # |round(mu / Q)| cap (keeps symbols integral in float64)
+# Attribute stream: anchors per coding chunk, escape limit, then the Gaussian stream.
+_BLOB_HDR = struct.Struct("<II")
 
 Params = Dict[str, Tuple[torch.Tensor, torch.Tensor, torch.Tensor]]
 
@@ -202,9 +206,11 @@ class EntropyModel(nn.Module):
                 blob = bytes(blobs[a.name])
                 if len(blob) < _BLOB_HDR.size:
                     raise BitstreamError(f"{a.name}: truncated attribute stream")
-                chunks.add(_BLOB_HDR.unpack_from(blob)[0])
-                coders[a.name] = GaussianStreamDecoder(blob[_BLOB_HDR.size:], what=a.name,
-                                                       escape_limit=self.escape_limit)
+                ch, limit = _BLOB_HDR.unpack_from(blob)
+                chunks.add(ch)
+                if not 0 < limit < 2 ** 30:
+                    raise BitstreamError(f"{a.name}: invalid escape limit {limit}")
+                coders[a.name] = GaussianStreamDecoder(blob[_BLOB_HDR.size:], what=a.name, escape_limit=limit)
             chunk = chunks.pop()
             if chunks or chunk <= 0:
                 raise BitstreamError("attribute streams disagree on (or hold an invalid) chunk size")
@@ -268,7 +274,8 @@ class EntropyModel(nn.Module):
                 pool.shutdown(wait=True, cancel_futures=True)
         values_q = {k: v.to(device=out_device, dtype=torch.float32) for k, v in outs.items()}
         if encode:
-            return {a.name: _BLOB_HDR.pack(chunk) + coders[a.name].finish() for a in self.attrs}, values_q
+            return {a.name: _BLOB_HDR.pack(chunk, self.escape_limit) + coders[a.name].finish()
+                    for a in self.attrs}, values_q
         for a in self.attrs:
             coders[a.name].check_done()
         return values_q
@@ -280,7 +287,13 @@ class EntropyModel(nn.Module):
 
     @torch.no_grad()
     def compress(self, xyz, values, gauss_mask=None, return_values: bool = False):
-        """Range code every attribute: ``{name: bytes}`` (and the decoded values if asked)."""
+        """Range code every attribute: ``{name: bytes}`` (and the decoded values if asked).
+
+        ``xyz`` must be the positions the decoder will have (the dequantized 16-bit positions),
+        ``gauss_mask`` the decoded masks, and the weights at their stored precision
+        (:meth:`serialize` first). Each stream records its chunking and escape limit, so the
+        decoder needs no coding options.
+        """
         blobs, vq = self._coding_pass(xyz, values, gauss_mask, encode=True)
         return (blobs, vq) if return_values else blobs
 

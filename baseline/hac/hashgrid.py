@@ -27,10 +27,16 @@ Interpolation, exactly as HAC's CUDA kernel (``kernel_grid`` in its gridencoder)
 Binarization (straight-through): forward ``clamp(p, -1, 1) >= 0 -> +1 else -1``, backward
 passes the gradient where ``|p| <= 1``. Parameters are float, initialised U(-1e-4, 1e-4).
 
-The same code path computes float32 (training) and float64 features; the float64 path uses only
-gathers and correctly rounded elementwise operations in a fixed order (no reductions whose order
-depends on threads, no transcendental functions), so it is bit-reproducible; the entropy coder
-builds on it (see :mod:`baseline.hac.exact`).
+The same code computes float32 (training) and float64 features. The *exact* path
+(:meth:`BinaryHashGrid.features_fixed`, used by the entropy coder) rounds the per-axis
+interpolation weights to integers (units of 2^-15), so every weighted sum is a sum of integers
+below 2^53, exact in any order; the rest are gathers and correctly rounded elementwise IEEE
+operations (no transcendental functions). Its output is bit-reproducible across thread counts,
+SIMD paths and chunkings (see :mod:`baseline.hac.exact`).
+
+Index math runs in int32 on runs of consecutive levels of the same kind (dense; hashed with
+power-of-two rows, where ``(coord * prime) mod rows`` is computed as ``coord * (prime mod rows)``);
+very large hashed levels fall back to the uint32 hash in int64.
 """
 from __future__ import annotations
 
