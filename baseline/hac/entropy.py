@@ -188,14 +188,15 @@ class EntropyModel(nn.Module):
         masks = {k: (m.cpu() if m is not None else None) for k, m in masks.items()}
         if encode:
             self._check_values(values, n)
-            xs = {a.name: values[a.name].detach().to("cpu", torch.float64) for a in self.attrs}
+            xs = {a.name: values[a.name].detach().cpu() for a in self.attrs}  # float64 per chunk
             x_means = {}
             for a in self.attrs:
                 x, m = xs[a.name], masks[a.name]
                 if not torch.isfinite(x).all():
                     raise ValueError(f"attribute '{a.name}' holds non-finite values")
-                sel = x[m] if m is not None else x
+                sel = (x[m] if m is not None else x).to(torch.float64)
                 x_means[a.name] = sel.mean() if sel.numel() else torch.zeros((), dtype=torch.float64)
+                del sel
             coders = {a.name: GaussianStreamEncoder(self.escape_limit) for a in self.attrs}
             chunk = self.chunk
         else:
@@ -214,7 +215,8 @@ class EntropyModel(nn.Module):
             chunk = chunks.pop()
             if chunks or chunk <= 0:
                 raise BitstreamError("attribute streams disagree on (or hold an invalid) chunk size")
-        outs = {a.name: torch.zeros(n, a.dims, dtype=torch.float64) for a in self.attrs}
+        # k * Q is computed in float64 and stored as float32 (a deterministic cast)
+        outs = {a.name: torch.zeros(n, a.dims, dtype=torch.float32) for a in self.attrs}
         ctx = self._exact_context()
 
         def model(s, e):
@@ -252,7 +254,7 @@ class EntropyModel(nn.Module):
                         return (t[msel] if msel is not None else t.reshape(-1)).numpy()
 
                     if encode:
-                        x = xs[a.name][s:e]
+                        x = xs[a.name][s:e].to(torch.float64)
                         lo = x_means[a.name] - CLAMP_STEPS * q
                         hi = x_means[a.name] + CLAMP_STEPS * q
                         k = torch.round(torch.maximum(torch.minimum(x, hi), lo) / q)
