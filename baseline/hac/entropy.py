@@ -107,6 +107,10 @@ class EntropyModel(nn.Module):
         self.attrs = attrs
         self.chunk = int(chunk)
         self.escape_limit = int(escape_limit)
+        if not 0 < self.escape_limit < 2 ** 30:
+            raise ValueError(f"escape_limit must be in [1, 2^30), got {escape_limit}")
+        if self.chunk <= 0:
+            raise ValueError(f"chunk must be positive, got {chunk}")
         self.pipeline = bool(pipeline)
 
     # ----------------------------------------------------------- to override
@@ -180,7 +184,8 @@ class EntropyModel(nn.Module):
         return {k: float(v.sum()) for k, v in bits.items()}
 
     # ----------------------------------------------------------------- coding
-    def _coding_pass(self, xyz, values=None, gauss_mask=None, blobs=None, encode=True):
+    def _coding_pass(self, xyz, values=None, gauss_mask=None, blobs=None, encode=True, emit=True):
+        """The one coding loop: encode (``emit=False``: only quantize) or decode, chunk by chunk."""
         n = int(xyz.shape[0])
         out_device = xyz.device
         xyz_cpu = xyz.detach().cpu()
@@ -258,7 +263,8 @@ class EntropyModel(nn.Module):
                         lo = x_means[a.name] - CLAMP_STEPS * q
                         hi = x_means[a.name] + CLAMP_STEPS * q
                         k = torch.round(torch.maximum(torch.minimum(x, hi), lo) / q)
-                        coders[a.name].add(pick(k - c).astype(np.int64), pick(mu_s), pick(sd_s))
+                        if emit:
+                            coders[a.name].add(pick(k - c).astype(np.int64), pick(mu_s), pick(sd_s))
                     else:
                         sym = coders[a.name].decode(pick(mu_s), pick(sd_s))
                         kk = torch.from_numpy(sym.astype(np.float64))
@@ -285,7 +291,7 @@ class EntropyModel(nn.Module):
     @torch.no_grad()
     def quantize_for_coding(self, xyz, values, gauss_mask=None) -> Dict[str, torch.Tensor]:
         """The values exactly as :meth:`decompress` will return them (float32)."""
-        return self._coding_pass(xyz, values, gauss_mask, encode=True)[1]
+        return self._coding_pass(xyz, values, gauss_mask, encode=True, emit=False)[1]
 
     @torch.no_grad()
     def compress(self, xyz, values, gauss_mask=None, return_values: bool = False):
