@@ -301,3 +301,100 @@ def test_estimated_bits_match_real_size():
     blobs = f.compress(xyz, vals, mask)
     for a in ATTRS:
         assert 8 * len(blobs[a.name]) == pytest.approx(est[a.name], rel=0.01), a.name
+
+
+def _round_half_even(fr):
+    return round(fr)  # Python rounds Fractions half to even, like torch.round
+
+
+def test_exact_mlp_equals_integer_arithmetic():
+    """The fixed-point MLP is bit-identical to an independent big-integer evaluation."""
+    from fractions import Fraction
+
+    torch.manual_seed(1)
+    mlp = torch.nn.Sequential(torch.nn.Linear(12, 9), torch.nn.ReLU(), torch.nn.Linear(9, 5))
+    ex = ExactMLP(mlp)
+    a = torch.round(torch.rand(40, 12, dtype=torch.float64) * 2 ** 21 - 2 ** 20)
+    got = ex(a)
+    L1, L2 = ex.layers
+    for r in range(a.shape[0]):
+        x = [int(v) for v in a[r]]
+        h = []
+        for j in range(9):
+            y = sum(x[i] * int(L1.w[j, i]) for i in range(12)) + int(L1.b[j])
+            y = max(y, 0)
+            h.append(_round_half_even(Fraction(y) * Fraction(2) ** (L1.out_frac_next - L1.w_frac - L1.in_frac)))
+        for o in range(5):
+            y = sum(h[i] * int(L2.w[o, i]) for i in range(9)) + int(L2.b[o])
+            ref = float(Fraction(y) * Fraction(2) ** (-(L2.w_frac + L2.in_frac)))
+            assert got[r, o].item() == ref
+
+
+def test_exact_params_independent_of_summation_order():
+    """Permuting the hidden units changes every float summation order, not the exact params."""
+    m = make_hac()
+    xyz = torch.rand(3000, 3) * 3.6 - 1.8
+    P = m.params(xyz, exact=True)
+    perm = torch.randperm(m.hidden)
+    with torch.no_grad():
+        m.mlp[0].weight.copy_(m.mlp[0].weight[perm])
+        m.mlp[0].bias.copy_(m.mlp[0].bias[perm])
+        m.mlp[2].weight.copy_(m.mlp[2].weight[:, perm])
+    P2 = m.params(xyz, exact=True)
+    for k in P:
+        for t, t2 in zip(P[k], P2[k]):
+            assert torch.equal(t, t2), k
+
+
+def test_exact_grid_features_equal_integer_reference():
+    """features_fixed is bit-identical to an independent per-point evaluation with integer weights."""
+    torch.manual_seed(2)
+    g = HACEntropyModel(ATTRS, 10, grid_options=SMALL_GRID).grid
+    with torch.no_grad():
+        for gl in g.grids.values():
+            gl.params.uniform_(-1, 1)
+    g.set_bounds([-1.5, -1, -2], [1, 2.5, 2])
+    xyz = torch.rand(25, 3) * 3 - 1.5
+    got = g.features_fixed(xyz)
+    lo = g.xyz_min.double().tolist()
+    hi = g.xyz_max.double().tolist()
+    tables = {k: (gl.params.detach() >= 0).numpy() * 2 - 1 for k, gl in g.grids.items()}
+    PR = (1, 2654435761, 805459861)
+    for r in range(xyz.shape[0]):
+        u = [(float(xyz[r, a]) - lo[a]) / (hi[a] - lo[a]) for a in range(3)]
+        col = 0
+        for name, gl in g.grids.items():
+            c = [u[a] for a in g._axes[name]]
+            D = len(c)
+            off = 0
+            for res, rows in zip(gl.resolutions, gl.rows):
+                vals = [0] * gl.n_features
+                wn = 0
+                if all(0.0 <= v <= 1.0 for v in c):
+                    pos = [v * (res - 2) + 0.5 for v in c]
+                    gi = [math.floor(p) for p in pos]
+                    w1 = [round((pos[d] - gi[d]) * 32768.0) for d in range(D)]
+                    for corner in range(2 ** D):
+                        w, cc = 1, []
+                        for d in range(D):
+                            hi_ = (corner >> d) & 1
+                            w *= w1[d] if hi_ else 32768 - w1[d]
+                            cc.append(min(gi[d] + 1, res - 1) if hi_ else gi[d])
+                        if any(x in (0, res - 1) for x in cc):
+                            continue
+                        if res ** D <= rows:
+                            idx = sum(cc[d] * res ** d for d in range(D))
+                        else:
+                            h = 0
+                            for d in range(D):
+                                h ^= (cc[d] * PR[d]) & 0xFFFFFFFF
+                            idx = h % rows
+                        for ch in range(gl.n_features):
+                            vals[ch] += w * int(tables[name][off + idx, ch])
+                        wn += w
+                for ch in range(gl.n_features):
+                    ref = float(round(vals[ch] / (wn if wn else 1) * 2.0 ** 20))
+                    assert got[r, col].item() == ref, (r, name, res, ch)
+                    col += 1
+                off += rows
+    assert col == got.shape[1]
