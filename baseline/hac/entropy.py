@@ -1,0 +1,483 @@
+"""Entropy models of the coded per-anchor attributes, behind one CompressAI-like interface.
+
+Registered as ``entropy_model`` components (see :mod:`baseline.hac`):
+
+* ``hac``        — HAC's hash-grid context model (SPEC.md 3): a :class:`BinaryHashGrid` queried at
+  the anchor position, then ``Linear(96, 100) ReLU Linear(100, sum(2 d) + n_attrs)`` giving per
+  attribute a mean and a scale per value (scale clamped >= 1e-9, no activation, as HAC) and
+  one quantization-step adjustment per anchor (``Q = q0 (1 + tanh(adj))``). For the baseline
+  attributes feat 50 / scaling 6 / offsets 30 that is 175 outputs, in HAC's order
+  ``[mean_feat, scale_feat, mean_scaling, scale_scaling, mean_offsets, scale_offsets,
+  adj_feat, adj_scaling, adj_offsets]``.
+* ``factorized`` — no context: a learned Gaussian per channel (mean, log-scale), fixed Q = q0.
+
+Interface (``EntropyModel(attrs: Sequence[CodedAttribute], n_masks: int, **options)``)::
+
+    params(xyz [N,3], exact=False) -> {name: (mean [N,d], scale [N,d], q [N,1])}
+        THE probability function. exact=False: differentiable float path (training, estimates).
+        exact=True: the bit-reproducible float64 CPU path that compress and decompress share.
+    forward(xyz, values {name: [N,d]}, gauss_mask [N,K] or None, training=True, adaptive_q=True)
+        -> (values_hat {name: [N,d]}, bits {name: [N]} per-anchor bits, masked values excluded)
+        training: x + U(-.5,.5) Q; else straight-through rounding (clamped to mean +- 15000 Q).
+        bits = -log2 max(|Phi((x+Q/2-mu)/s) - Phi((x-Q/2-mu)/s)|, 1e-6).
+    hash_bits() -> scalar tensor (0 for factorized)
+    quantize_for_coding(xyz, values, gauss_mask) -> {name: [N,d] float32}  what decode returns
+    compress(xyz, values, gauss_mask, return_values=False) -> {name: bytes} (, values)
+    decompress(xyz, blobs, gauss_mask, n) -> {name: [N,d] float32}
+    serialize(precision) -> {name: bytes};  load_serialized(blobs);  config() -> dict
+
+Exact decoding. Coding uses ``params(exact=True)`` on both sides: hash-grid features with
+integer interpolation weights rounded to 2^-20, the context MLP in fixed point held in float64
+(every matmul partial sum is an integer below 2^53, hence exact in any order), and a tanh made of
+correctly rounded operations (:mod:`baseline.hac.exact`). Nothing depends on thread count,
+BLAS, SIMD or chunking, so the decoder reproduces the encoder's (mean, scale, Q) bit for bit;
+rounding to a coarse grid is unnecessary. The values are coded as integer symbols
+``s = round(x / Q) - round(mu / Q)`` with a quantized Gaussian of mean ``mu/Q - round(mu/Q)`` and
+std ``scale/Q`` (constriction's leaky quantizer, range coder); the decoder returns
+``(s + round(mu/Q)) * Q``, bit-identical to the encoder's quantized value. Weights must be at the
+stored precision before coding: :meth:`serialize` rounds them in place.
+Options common to both models: ``chunk`` (anchors per coding chunk, 32768), ``escape_limit``
+(|symbol - round(mu/Q)| beyond which a value is stored raw, 16383), ``pipeline`` (compute the
+next chunk's model in a worker thread while the range coder runs, True).
+Remaining assumption: constriction's quantizer (compiled Rust) evaluates the Gaussian CDF the
+same way on both machines; it is single-threaded and deterministic for identical inputs.
+"""
+from __future__ import annotations
+
+import math
+import struct
+from concurrent.futures import ThreadPoolExecutor
+from typing import Dict, Optional, Sequence, Tuple
+
+import numpy as np
+import torch
+import torch.nn as nn
+
+from baseline.contracts import CodedAttribute
+from baseline.codec.container import BitstreamError
+from baseline.codec.rangecoder import (DEFAULT_ESCAPE_LIMIT, GaussianStreamDecoder,
+                                       GaussianStreamEncoder)
+from baseline.codec.weights import pack_state_dict, round_module_, unpack_state_dict
+from baseline.hac.exact import ExactMLP, det_exp, det_tanh
+from baseline.hac.hashgrid import FEATURE_BITS, BinaryHashGrid
+from baseline.hac.quant import CLAMP_STEPS, Q_FLOOR, adaptive_q, noise_quantize, ste_round
+
+LIKELIHOOD_FLOOR = 1e-6
+SCALE_FLOOR = 1e-9
+_C_LIMIT = float(2 ** 40)  # |round(mu / Q)| cap (keeps symbols integral in float64)
+# Attribute stream: anchors per coding chunk, escape limit, then the Gaussian stream.
+_BLOB_HDR = struct.Struct("<II")
+
+Params = Dict[str, Tuple[torch.Tensor, torch.Tensor, torch.Tensor]]
+
+
+def gaussian_likelihood(x: torch.Tensor, mean: torch.Tensor, scale: torch.Tensor, q) -> torch.Tensor:
+    """``max(|Phi((x + q/2 - mean)/scale) - Phi((x - q/2 - mean)/scale)|, 1e-6)``."""
+    scale = torch.clamp(scale, min=SCALE_FLOOR)
+    upper = torch.special.ndtr((x + 0.5 * q - mean) / scale)
+    lower = torch.special.ndtr((x - 0.5 * q - mean) / scale)
+    return torch.clamp(torch.abs(upper - lower), min=LIKELIHOOD_FLOOR)
+
+
+def gaussian_bits(x, mean, scale, q) -> torch.Tensor:
+    return -torch.log2(gaussian_likelihood(x, mean, scale, q))
+
+
+class EntropyModel(nn.Module):
+    """Base class: attribute bookkeeping, training forward, and the shared coding loop."""
+
+    kind = "base"
+
+    def __init__(self, attrs: Sequence[CodedAttribute], n_masks: int, *, chunk: int = 32768,
+                 escape_limit: int = DEFAULT_ESCAPE_LIMIT, pipeline: bool = True):
+        super().__init__()
+        attrs = tuple(attrs)
+        if not attrs:
+            raise ValueError("an entropy model needs at least one coded attribute")
+        names = [a.name for a in attrs]
+        if len(set(names)) != len(names):
+            raise ValueError(f"duplicate coded attribute names: {names}")
+        self.n_masks = int(n_masks)
+        for a in attrs:
+            if a.dims <= 0 or not (a.q0 > 0 and math.isfinite(a.q0)):
+                raise ValueError(f"invalid coded attribute {a}")
+            if a.masked and (self.n_masks <= 0 or a.dims % self.n_masks):
+                raise ValueError(f"masked attribute '{a.name}' has {a.dims} dims, not a multiple "
+                                 f"of n_masks={self.n_masks}")
+        self.attrs = attrs
+        self.chunk = int(chunk)
+        self.escape_limit = int(escape_limit)
+        if not 0 < self.escape_limit < 2 ** 30:
+            raise ValueError(f"escape_limit must be in [1, 2^30), got {escape_limit}")
+        if self.chunk <= 0:
+            raise ValueError(f"chunk must be positive, got {chunk}")
+        self.pipeline = bool(pipeline)
+
+    # ----------------------------------------------------------- to override
+    def params(self, xyz: torch.Tensor, exact: bool = False, _ctx=None) -> Params:
+        raise NotImplementedError
+
+    def _exact_context(self):
+        """Precomputed state shared by all chunks of one exact pass (e.g. the fixed-point MLP)."""
+        return None
+
+    def hash_bits(self) -> torch.Tensor:
+        return torch.zeros(())
+
+    def config(self) -> dict:
+        return {"kind": self.kind, "n_masks": self.n_masks,
+                "attrs": [[a.name, a.dims, a.q0, a.masked] for a in self.attrs]}
+
+    # ---------------------------------------------------------------- helpers
+    def value_mask(self, attr: CodedAttribute, gauss_mask: Optional[torch.Tensor], n: int,
+                   device=None) -> Optional[torch.Tensor]:
+        """[n, d] bool of the values that are coded (None: all of them)."""
+        if not attr.masked or gauss_mask is None:
+            return None
+        m = torch.as_tensor(gauss_mask, device=device)
+        if m.ndim == 3 and m.shape[-1] == 1:
+            m = m[..., 0]
+        if m.shape != (n, self.n_masks):
+            raise ValueError(f"gauss_mask must be [{n}, {self.n_masks}], got {tuple(m.shape)}")
+        per = attr.dims // self.n_masks
+        return (m > 0.5).repeat_interleave(per, dim=1) if m.is_floating_point() else \
+            m.bool().repeat_interleave(per, dim=1)
+
+    def _check_values(self, values, n):
+        for a in self.attrs:
+            if a.name not in values:
+                raise KeyError(f"missing coded attribute '{a.name}'")
+            v = values[a.name]
+            if v.shape != (n, a.dims):
+                raise ValueError(f"attribute '{a.name}' must be [{n}, {a.dims}], got {tuple(v.shape)}")
+
+    # --------------------------------------------------------------- training
+    def forward(self, xyz: torch.Tensor, values: Dict[str, torch.Tensor],
+                gauss_mask: Optional[torch.Tensor] = None, training: bool = True,
+                adaptive_q: bool = True):
+        """Quantized values and per-anchor bits per attribute (see module docstring).
+
+        ``adaptive_q=False`` uses the base step q0 (HAC's phase 3001..10000).
+        """
+        n = xyz.shape[0]
+        self._check_values(values, n)
+        P = self.params(xyz)
+        values_hat, bits = {}, {}
+        for a in self.attrs:
+            x = values[a.name]
+            mean, scale, q = P[a.name]
+            if not adaptive_q:
+                q = torch.full_like(q, a.q0)
+            x_hat = noise_quantize(x, q) if training else ste_round(x, q)
+            b = gaussian_bits(x_hat, mean, scale, q)
+            m = self.value_mask(a, gauss_mask, n, device=x.device)
+            if m is not None:
+                b = b * m.to(b.dtype)
+            values_hat[a.name] = x_hat
+            bits[a.name] = b.sum(dim=-1)
+        return values_hat, bits
+
+    @torch.no_grad()
+    def estimate_bits(self, xyz, values, gauss_mask=None) -> Dict[str, float]:
+        """Total estimated bits per attribute with rounding (no noise)."""
+        _, bits = self.forward(xyz, values, gauss_mask, training=False)
+        return {k: float(v.sum()) for k, v in bits.items()}
+
+    # ----------------------------------------------------------------- coding
+    def _coding_pass(self, xyz, values=None, gauss_mask=None, blobs=None, encode=True, emit=True):
+        """The one coding loop: encode (``emit=False``: only quantize) or decode, chunk by chunk."""
+        n = int(xyz.shape[0])
+        out_device = xyz.device
+        xyz_cpu = xyz.detach().cpu()
+        masks = {a.name: self.value_mask(a, gauss_mask, n) for a in self.attrs}
+        masks = {k: (m.cpu() if m is not None else None) for k, m in masks.items()}
+        if encode:
+            self._check_values(values, n)
+            xs = {a.name: values[a.name].detach().cpu() for a in self.attrs}  # float64 per chunk
+            x_means = {}
+            for a in self.attrs:
+                x, m = xs[a.name], masks[a.name]
+                if not torch.isfinite(x).all():
+                    raise ValueError(f"attribute '{a.name}' holds non-finite values")
+                sel = (x[m] if m is not None else x).to(torch.float64)
+                x_means[a.name] = sel.mean() if sel.numel() else torch.zeros((), dtype=torch.float64)
+                del sel
+            coders = {a.name: GaussianStreamEncoder(self.escape_limit) for a in self.attrs}
+            chunk = self.chunk
+        else:
+            coders, chunks = {}, set()
+            for a in self.attrs:
+                if a.name not in blobs:
+                    raise BitstreamError(f"missing coded section '{a.name}'")
+                blob = bytes(blobs[a.name])
+                if len(blob) < _BLOB_HDR.size:
+                    raise BitstreamError(f"{a.name}: truncated attribute stream")
+                ch, limit = _BLOB_HDR.unpack_from(blob)
+                chunks.add(ch)
+                if not 0 < limit < 2 ** 30:
+                    raise BitstreamError(f"{a.name}: invalid escape limit {limit}")
+                coders[a.name] = GaussianStreamDecoder(blob[_BLOB_HDR.size:], what=a.name, escape_limit=limit)
+            chunk = chunks.pop()
+            if chunks or chunk <= 0:
+                raise BitstreamError("attribute streams disagree on (or hold an invalid) chunk size")
+        # k * Q is computed in float64 and stored as float32 (a deterministic cast)
+        outs = {a.name: torch.zeros(n, a.dims, dtype=torch.float32) for a in self.attrs}
+        ctx = self._exact_context()
+
+        def model(s, e):
+            """Coding distribution of anchors s..e: per attribute (c, mu_s, sd_s, q) [n, d]."""
+            P = self.params(xyz_cpu[s:e], exact=True, _ctx=ctx)
+            res = {}
+            for a in self.attrs:
+                mean, scale, q = P[a.name]
+                q = q.expand(-1, a.dims)
+                c = torch.clamp(torch.round(mean / q), -_C_LIMIT, _C_LIMIT)
+                res[a.name] = (c, mean / q - c, scale / q, q)
+            return res
+
+        # the decoder follows the encoder's chunking (stored in each attribute stream)
+        bounds = [(s, min(n, s + chunk)) for s in range(0, n, chunk)]
+        # The (torch, GIL-releasing) model of chunk i+1 is computed in a worker thread while the
+        # main thread range-codes chunk i (constriction holds the GIL). Exactness does not depend
+        # on it: the model is bit-reproducible under any threading.
+        pool = ThreadPoolExecutor(max_workers=1) if (self.pipeline and len(bounds) > 1) else None
+        try:
+            fut = pool.submit(model, *bounds[0]) if (pool and bounds) else None
+            for i, (s, e) in enumerate(bounds):
+                if pool:
+                    M = fut.result()
+                    if i + 1 < len(bounds):
+                        fut = pool.submit(model, *bounds[i + 1])
+                else:
+                    M = model(s, e)
+                for a in self.attrs:
+                    c, mu_s, sd_s, q = M[a.name]
+                    m = masks[a.name]
+                    msel = m[s:e] if m is not None else None
+
+                    def pick(t):
+                        return (t[msel] if msel is not None else t.reshape(-1)).numpy()
+
+                    if encode:
+                        x = xs[a.name][s:e].to(torch.float64)
+                        lo = x_means[a.name] - CLAMP_STEPS * q
+                        hi = x_means[a.name] + CLAMP_STEPS * q
+                        k = torch.round(torch.maximum(torch.minimum(x, hi), lo) / q)
+                        if emit:
+                            coders[a.name].add(pick(k - c).astype(np.int64), pick(mu_s), pick(sd_s))
+                    else:
+                        sym = coders[a.name].decode(pick(mu_s), pick(sd_s))
+                        kk = torch.from_numpy(sym.astype(np.float64))
+                        if msel is not None:
+                            k = torch.zeros_like(c)
+                            k[msel] = kk + c[msel]
+                        else:
+                            k = kk.reshape(c.shape) + c
+                    xq = k * q
+                    if msel is not None:
+                        xq = torch.where(msel, xq, torch.zeros_like(xq))
+                    outs[a.name][s:e] = xq
+        finally:
+            if pool:
+                pool.shutdown(wait=True, cancel_futures=True)
+        values_q = {k: v.to(device=out_device, dtype=torch.float32) for k, v in outs.items()}
+        if encode:
+            return {a.name: _BLOB_HDR.pack(chunk, self.escape_limit) + coders[a.name].finish()
+                    for a in self.attrs}, values_q
+        for a in self.attrs:
+            coders[a.name].check_done()
+        return values_q
+
+    @torch.no_grad()
+    def quantize_for_coding(self, xyz, values, gauss_mask=None) -> Dict[str, torch.Tensor]:
+        """The values exactly as :meth:`decompress` will return them (float32)."""
+        return self._coding_pass(xyz, values, gauss_mask, encode=True, emit=False)[1]
+
+    @torch.no_grad()
+    def compress(self, xyz, values, gauss_mask=None, return_values: bool = False):
+        """Range code every attribute: ``{name: bytes}`` (and the decoded values if asked).
+
+        ``xyz`` must be the positions the decoder will have (the dequantized 16-bit positions),
+        ``gauss_mask`` the decoded masks, and the weights at their stored precision
+        (:meth:`serialize` first). Each stream records its chunking and escape limit, so the
+        decoder needs no coding options.
+        """
+        blobs, vq = self._coding_pass(xyz, values, gauss_mask, encode=True)
+        return (blobs, vq) if return_values else blobs
+
+    @torch.no_grad()
+    def decompress(self, xyz, blobs: Dict[str, bytes], gauss_mask=None, n: Optional[int] = None):
+        """Decode what :meth:`compress` produced, given the same positions and masks."""
+        if n is not None and int(n) != int(xyz.shape[0]):
+            raise ValueError(f"n={n} but {xyz.shape[0]} positions were given")
+        return self._coding_pass(xyz, gauss_mask=gauss_mask, blobs=blobs, encode=False)
+
+    # --------------------------------------------------------- serialisation
+    def serialize(self, precision: str = "float32") -> Dict[str, bytes]:
+        raise NotImplementedError
+
+    def load_serialized(self, blobs: Dict[str, bytes]) -> None:
+        raise NotImplementedError
+
+
+class HACEntropyModel(EntropyModel):
+    """HAC's hash-grid context model (see the module docstring).
+
+    Options: ``grid`` (a :class:`BinaryHashGrid` to use), or ``grid_options`` (its constructor
+    arguments, default HAC's layout); ``hidden`` (100); ``chunk``; ``escape_limit``.
+    """
+
+    kind = "hac"
+
+    def __init__(self, attrs: Sequence[CodedAttribute], n_masks: int, *, grid: Optional[BinaryHashGrid] = None,
+                 grid_options: Optional[dict] = None, hidden: int = 100, **options):
+        super().__init__(attrs, n_masks, **options)
+        self.grid = grid if grid is not None else BinaryHashGrid(**(grid_options or {}))
+        self.hidden = int(hidden)
+        self.n_out = sum(2 * a.dims for a in self.attrs) + len(self.attrs)
+        self.mlp = nn.Sequential(nn.Linear(self.grid.output_dim, self.hidden), nn.ReLU(),
+                                 nn.Linear(self.hidden, self.n_out))
+
+    def set_bounds(self, xyz_min, xyz_max) -> None:
+        self.grid.set_bounds(xyz_min, xyz_max)
+
+    def hash_bits(self) -> torch.Tensor:
+        return self.grid.hash_bits()
+
+    def config(self) -> dict:
+        cfg = super().config()
+        g = dict(self.grid.config)
+        g = {k: (list(v) if isinstance(v, tuple) else v) for k, v in g.items()}
+        cfg.update(hidden=self.hidden, grid=g)
+        return cfg
+
+    def _split(self, out, exact: bool) -> Params:
+        P, off = {}, 0
+        n_attrs = len(self.attrs)
+        adj_off = self.n_out - n_attrs
+        for i, a in enumerate(self.attrs):
+            mean = out[:, off:off + a.dims]
+            scale = out[:, off + a.dims:off + 2 * a.dims]
+            off += 2 * a.dims
+            adj = out[:, adj_off + i:adj_off + i + 1]
+            scale = torch.clamp(scale, min=SCALE_FLOOR)
+            if exact:
+                t = torch.from_numpy(det_tanh(adj.numpy()))
+                q = torch.clamp(a.q0 * (1.0 + t), min=a.q0 * Q_FLOOR)
+            else:
+                q = adaptive_q(a.q0, adj)
+            P[a.name] = (mean, scale, q)
+        return P
+
+    def _exact_context(self):
+        return ExactMLP(self.mlp, in_bits=FEATURE_BITS, in_frac=FEATURE_BITS)
+
+    def params(self, xyz: torch.Tensor, exact: bool = False, _ctx=None) -> Params:
+        if exact:
+            with torch.no_grad():
+                ex = _ctx if _ctx is not None else self._exact_context()
+                return self._split(ex(self.grid.features_fixed(xyz)), exact=True)
+        return self._split(self.mlp(self.grid(xyz)), exact=False)
+
+    def serialize(self, precision: str = "float32") -> Dict[str, bytes]:
+        """Sections ``grid`` (Bernoulli-coded binary tables) and ``mlp`` (weights + grid bounds).
+
+        Rounds the context MLP in place to ``precision`` first, so the encoder's probabilities
+        are the decoder's.
+        """
+        round_module_(self.mlp, precision)
+        sd = {"xyz_min": self.grid.xyz_min, "xyz_max": self.grid.xyz_max}
+        sd.update({f"mlp.{k}": v for k, v in self.mlp.state_dict().items()})
+        return {"grid": self.grid.encode_bits(),
+                "mlp": pack_state_dict(sd, precision, keep=("xyz_min", "xyz_max"))}
+
+    def load_serialized(self, blobs: Dict[str, bytes]) -> None:
+        for k in ("grid", "mlp"):
+            if k not in blobs:
+                raise BitstreamError(f"entropy model: missing section '{k}'")
+        sd = unpack_state_dict(blobs["mlp"], what="entropy model weights")
+        try:
+            self.grid.set_bounds(sd.pop("xyz_min"), sd.pop("xyz_max"))
+            self.mlp.load_state_dict({k[4:]: v for k, v in sd.items() if k.startswith("mlp.")})
+        except (KeyError, RuntimeError, ValueError) as e:
+            raise BitstreamError(f"entropy model weights do not fit the model: {e}") from None
+        self.grid.decode_bits(blobs["grid"])
+
+
+class FactorizedEntropyModel(EntropyModel):
+    """Context-free model: one learned Gaussian per channel, fixed step Q = q0.
+
+    Parameters ``mean_<name>`` [d] (init 0) and ``log_scale_<name>`` [d] (init log(10 q0)).
+    :meth:`fit_` sets them from data statistics (a quick "trained" state).
+    """
+
+    kind = "factorized"
+
+    def __init__(self, attrs: Sequence[CodedAttribute], n_masks: int, **options):
+        super().__init__(attrs, n_masks, **options)
+        self.means = nn.ParameterDict()
+        self.log_scales = nn.ParameterDict()
+        for a in self.attrs:
+            self.means[a.name] = nn.Parameter(torch.zeros(a.dims))
+            self.log_scales[a.name] = nn.Parameter(torch.full((a.dims,), math.log(10 * a.q0)))
+
+    @torch.no_grad()
+    def fit_(self, values: Dict[str, torch.Tensor], gauss_mask=None) -> None:
+        for a in self.attrs:
+            x = values[a.name].detach().float()
+            m = self.value_mask(a, gauss_mask, x.shape[0], device=x.device)
+            w = m.float() if m is not None else torch.ones_like(x)
+            cnt = w.sum(0).clamp(min=1)
+            mu = (x * w).sum(0) / cnt
+            var = (((x - mu) ** 2) * w).sum(0) / cnt
+            self.means[a.name].copy_(mu)
+            self.log_scales[a.name].copy_(torch.log(var.sqrt().clamp(min=a.q0 * 0.1)))
+
+    def params(self, xyz: torch.Tensor, exact: bool = False, _ctx=None) -> Params:
+        n = xyz.shape[0]
+        P = {}
+        for a in self.attrs:
+            if exact:
+                mean = self.means[a.name].detach().cpu().double()
+                scale = torch.from_numpy(det_exp(self.log_scales[a.name].detach().cpu().double().numpy()))
+                scale = torch.clamp(scale, min=SCALE_FLOOR)
+                q = torch.full((n, 1), a.q0, dtype=torch.float64)
+            else:
+                mean = self.means[a.name]
+                scale = torch.clamp(torch.exp(self.log_scales[a.name]), min=SCALE_FLOOR)
+                q = torch.full((n, 1), a.q0, dtype=mean.dtype, device=xyz.device)
+                mean = mean.to(xyz.device)
+                scale = scale.to(xyz.device)
+            P[a.name] = (mean.expand(n, -1), scale.expand(n, -1), q)
+        return P
+
+    def serialize(self, precision: str = "float32") -> Dict[str, bytes]:
+        round_module_(self, precision)
+        return {"factorized": pack_state_dict(self.state_dict(), precision)}
+
+    def load_serialized(self, blobs: Dict[str, bytes]) -> None:
+        if "factorized" not in blobs:
+            raise BitstreamError("entropy model: missing section 'factorized'")
+        sd = unpack_state_dict(blobs["factorized"], what="entropy model weights")
+        try:
+            self.load_state_dict(sd)
+        except RuntimeError as e:
+            raise BitstreamError(f"entropy model weights do not fit the model: {e}") from None
+
+
+ENTROPY_MODELS = {"hac": HACEntropyModel, "factorized": FactorizedEntropyModel}
+
+
+def build_entropy_model(config: dict, **overrides) -> EntropyModel:
+    """Rebuild an entropy model from :meth:`EntropyModel.config` (e.g. a bitstream header)."""
+    from baseline import registry
+
+    cfg = dict(config)
+    kind = cfg.pop("kind")
+    attrs = [CodedAttribute(str(n), int(d), float(q), bool(m)) for n, d, q, m in cfg.pop("attrs")]
+    n_masks = int(cfg.pop("n_masks"))
+    cls = ENTROPY_MODELS.get(kind) or registry.get("entropy_model", kind)
+    if "grid" in cfg:
+        cfg["grid_options"] = cfg.pop("grid")
+    cfg.update(overrides)
+    return cls(attrs, n_masks, **cfg)

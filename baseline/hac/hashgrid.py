@@ -1,0 +1,474 @@
+"""HAC's binarized hash grid: one 3D multi-resolution grid plus xy / xz / yz planes (SPEC.md 3).
+
+Also the generic binary feature field that Predict-GS reuses as its Spatial Feature Pool: every
+size is a constructor argument, and several instances can live side by side.
+
+Layout (defaults = HAC, 96 output dims, 1,766,272 binary values):
+    3D grid   resolutions (18, 24, 33, 44, 59, 80, 108, 148, 201, 275, 376, 514), table 2^13
+    2D planes resolutions (130, 258, 514, 1026), table 2^15, one grid per plane xy, xz, yz
+    4 features per table row; output = [3D levels | xy levels | xz levels | yz levels], each
+    level contributing its ``n_features`` values (level-major, as HAC's kernel writes them).
+
+Rows of a level = ``ceil(min(2^log2, res^dim) / 8) * 8``. A level is *dense* when
+``res^dim <= rows`` (index = x + y*res + z*res^2), else *hashed*: the uint32 XOR of
+``coord_d * prime_d`` with primes (1, 2654435761, 805459861), modulo ``rows``.
+
+Interpolation, exactly as HAC's CUDA kernel (``kernel_grid`` in its gridencoder):
+    * positions are normalised by the anchor bounds to ``u`` in [0, 1]; a grid whose own input
+      coordinates leave [0, 1] outputs zeros (HAC checks per sub-grid: a point outside the box
+      in z still gets xy-plane features). ``oob="all"`` zeroes every grid instead;
+    * ``pos = u * (res - 2) + 0.5``, ``g = floor(pos)``, ``f = pos - g``;
+    * corners ``g`` and ``min(g + 1, res - 1)`` per axis with the usual multilinear weights;
+    * a corner with any coordinate equal to 0 or ``res - 1`` is excluded, the remaining weights
+      are renormalised by their sum ``wn`` (``wn == 0`` -> 1e-9, i.e. zero output).
+    Consequence: only the interior lattice 1..res-2 ever stores features, u = 0 sits half way
+    between the excluded corner 0 and corner 1, and u = 1 half way between res-2 and res-1.
+
+Binarization (straight-through): forward ``clamp(p, -1, 1) >= 0 -> +1 else -1``, backward
+passes the gradient where ``|p| <= 1``. Parameters are float, initialised U(-1e-4, 1e-4).
+
+The same code computes float32 (training) and float64 features. The *exact* path
+(:meth:`BinaryHashGrid.features_fixed`, used by the entropy coder) rounds the per-axis
+interpolation weights to integers (units of 2^-15), so every weighted sum is a sum of integers
+below 2^53, exact in any order; the rest are gathers and correctly rounded elementwise IEEE
+operations (no transcendental functions). Its output is bit-reproducible across thread counts,
+SIMD paths and chunkings (see :mod:`baseline.hac.exact`).
+
+Index math runs in int32 on runs of consecutive levels of the same kind (dense; hashed with
+power-of-two rows, where ``(coord * prime) mod rows`` is computed as ``coord * (prime mod rows)``);
+very large hashed levels fall back to the uint32 hash in int64.
+"""
+from __future__ import annotations
+
+import math
+from typing import Dict, Optional, Sequence, Tuple
+
+import numpy as np
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+
+HAC_RESOLUTIONS_3D = (18, 24, 33, 44, 59, 80, 108, 148, 201, 275, 376, 514)
+HAC_RESOLUTIONS_2D = (130, 258, 514, 1026)
+HAC_LOG2_TABLE_3D = 13
+HAC_LOG2_TABLE_2D = 15
+HASH_PRIMES = (1, 2654435761, 805459861)
+PLANES = {"xy": (0, 1), "xz": (0, 2), "yz": (1, 2)}
+_MASK32 = 0xFFFFFFFF
+# Fractional bits of the per-axis interpolation weights in the exact (coding) path.
+WEIGHT_BITS = 15
+# Fractional bits of the exact-path features (multiples of 2^-FEATURE_BITS).
+FEATURE_BITS = 20
+
+
+class STEBinary(torch.autograd.Function):
+    """``clamp(x, -1, 1) >= 0 -> +1 else -1``; gradient passes where ``|x| <= 1``."""
+
+    @staticmethod
+    def forward(ctx, x):
+        ctx.save_for_backward(x)
+        return torch.where(x.clamp(-1.0, 1.0) >= 0, torch.ones_like(x), -torch.ones_like(x))
+
+    @staticmethod
+    def backward(ctx, grad):
+        (x,) = ctx.saved_tensors
+        return grad * (x.abs() <= 1.0).to(grad.dtype)
+
+
+def binarize(x: torch.Tensor) -> torch.Tensor:
+    return STEBinary.apply(x)
+
+
+def level_rows(res: int, dim: int, log2_table: int) -> int:
+    """Rows of one level: ``ceil(min(2^log2, res^dim) / 8) * 8``."""
+    return int(math.ceil(min(2 ** log2_table, res ** dim) / 8) * 8)
+
+
+def binary_entropy_bits(binary: torch.Tensor) -> torch.Tensor:
+    """HAC's size estimate of a {-1, +1} tensor coded with one global Bernoulli p.
+
+    ``p = n1 / n`` clamped to [1e-6, 1 - 1e-6]; ``bits = -n1 log2 p - n0 log2 (1 - p) + 32``
+    (32 bits for p). Differentiable with respect to ``binary`` (through the STE it came from).
+    """
+    b = (binary.reshape(-1) + 1) / 2
+    n = b.numel()
+    n1 = b.sum()
+    n0 = n - n1
+    p = (n1 / max(n, 1)).clamp(1e-6, 1 - 1e-6)
+    return -n1 * torch.log2(p) - n0 * torch.log2(1 - p) + 32
+
+
+class GridLevels(nn.Module):
+    """One multi-resolution grid of dimension ``dim`` (a 3D grid or a 2D plane).
+
+    Parameters: ``params`` [total_rows, n_features] (float; binarised in :meth:`forward`).
+    """
+
+    def __init__(self, dim: int, resolutions: Sequence[int], log2_table: int, n_features: int,
+                 init_range: float = 1e-4):
+        super().__init__()
+        if dim not in (2, 3):
+            raise ValueError(f"grid dimension must be 2 or 3, got {dim}")
+        resolutions = tuple(int(r) for r in resolutions)
+        if any(r < 2 for r in resolutions):
+            raise ValueError(f"grid resolutions must be >= 2, got {resolutions}")
+        self.dim = dim
+        self.resolutions = resolutions
+        self.log2_table = int(log2_table)
+        self.n_features = int(n_features)
+        rows = [level_rows(r, dim, log2_table) for r in resolutions]
+        offsets = np.concatenate([[0], np.cumsum(rows)]).astype(np.int64)
+        self.rows = tuple(rows)
+        self.register_buffer("_res", torch.tensor(resolutions, dtype=torch.int64), persistent=False)
+        self.register_buffer("_rows", torch.tensor(rows, dtype=torch.int64), persistent=False)
+        self.register_buffer("_offsets", torch.from_numpy(offsets[:-1].copy()), persistent=False)
+        strides = torch.tensor([[r ** d for d in range(dim)] for r in resolutions], dtype=torch.int64)
+        self.register_buffer("_strides", strides, persistent=False)
+        # Runs of consecutive levels sharing an index kind: "dense"; "hash32" (power-of-two rows,
+        # small enough that (coord * (prime mod rows)) fits int32: (a ^ b) mod 2^k equals
+        # (a mod 2^k) ^ (b mod 2^k)); "hash64" (the general uint32 hash, then modulo rows).
+        kinds = []
+        for r, t in zip(resolutions, rows):
+            if r ** dim <= t:
+                kinds.append("dense")
+            elif t & (t - 1) == 0 and r * t < 2 ** 31:
+                kinds.append("hash32")
+            else:
+                kinds.append("hash64")
+        self._runs = []
+        for i, k in enumerate(kinds):
+            if self._runs and self._runs[-1][2] == k:
+                self._runs[-1][1] = i + 1
+            else:
+                self._runs.append([i, i + 1, k])
+        self._runs = [tuple(r) for r in self._runs]
+        pmod = torch.tensor([[HASH_PRIMES[d] % t for d in range(dim)] for t in rows], dtype=torch.int64)
+        self.register_buffer("_pmod", pmod, persistent=False)
+        self._index_dtype = torch.int32 if int(offsets[-1]) < 2 ** 31 else torch.int64
+        self.params = nn.Parameter(torch.empty(int(offsets[-1]), self.n_features))
+        self.init_range = float(init_range)
+        self.reset_parameters()
+
+    def reset_parameters(self) -> None:
+        with torch.no_grad():
+            self.params.uniform_(-self.init_range, self.init_range)
+
+    @property
+    def n_levels(self) -> int:
+        return len(self.resolutions)
+
+    @property
+    def output_dim(self) -> int:
+        return self.n_levels * self.n_features
+
+    def _corner_product(self, pair: torch.Tensor, combine) -> torch.Tensor:
+        """Combine per-axis candidates [dim, 2, n, L] into per-corner values [2^dim, n, L].
+
+        Corner ``c`` uses candidate ``(c >> d) & 1`` on axis d (HAC's order; axis 0 fastest).
+        Values are combined in axis order (``combine(axis_d, acc)``), by broadcasting over the
+        contiguous point/level dims (fast inner loops).
+        """
+        acc = pair[0]
+        for d in range(1, self.dim):
+            acc = combine(pair[d][:, None], acc[None, :]).flatten(0, 1)
+        return acc
+
+    def corner_indices(self, u: torch.Tensor, exact: bool = False):
+        """Table row indices and weights of every corner: (idx [n, L, C], w [n, L, C]).
+
+        ``u`` [n, dim] inside [0, 1]; ``C = 2^dim`` corners in HAC's order (bit d of the corner
+        number selects the upper neighbour ``min(g + 1, res - 1)`` along axis d). A corner with a
+        coordinate equal to 0 or ``res - 1`` gets weight 0. Corner weights are the product of
+        the axis weights in axis order (as HAC's kernel).
+
+        ``exact``: per-axis weights are integers in units of 2^-WEIGHT_BITS (upper
+        ``round(f * 2^15)``, lower ``2^15 -`` that), so corner weights are integers < 2^45 and
+        every sum of them, in any order, is exact in float64.
+        """
+        res = self._res
+        ut = u.T.contiguous()  # [dim, n]
+        pos = ut[:, :, None] * (res.to(u.dtype) - 2) + 0.5  # [dim, n, L]
+        g = torch.floor(pos)
+        f = pos - g
+        g = g.to(torch.int32)  # in [0, res - 1] for u in [0, 1]
+        hi_cap = (res - 1).to(torch.int32)
+        gp = torch.stack([g, torch.minimum(g + 1, hi_cap)], dim=1)  # [dim, 2, n, L]
+        if exact:
+            w1 = torch.round(f * float(1 << WEIGHT_BITS))
+            wp = torch.stack([float(1 << WEIGHT_BITS) - w1, w1], dim=1)
+        else:
+            wp = torch.stack([1 - f, f], dim=1)
+        wp = wp * ((gp > 0) & (gp < hi_cap)).to(wp.dtype)
+        w = self._corner_product(wp, torch.mul)  # [C, n, L]
+        idx = None
+        for a, b, kind in self._runs:
+            gl = gp[..., a:b]
+            if kind == "dense":
+                part = self._corner_product(gl * self._strides[a:b].T.to(torch.int32)[:, None, None, :], torch.add)
+            elif kind == "hash32":
+                mask = (self._rows[a:b] - 1).to(torch.int32)
+                terms = (gl * self._pmod[a:b].T.to(torch.int32)[:, None, None, :]) & mask
+                part = self._corner_product(terms, torch.bitwise_xor)
+            else:
+                primes = torch.tensor(HASH_PRIMES[:self.dim], dtype=torch.int64, device=gl.device)
+                terms = (gl.to(torch.int64) * primes[:, None, None, None]) & _MASK32
+                part = torch.remainder(self._corner_product(terms, torch.bitwise_xor), self._rows[a:b])
+            if len(self._runs) == 1:
+                idx = part.to(self._index_dtype)
+            else:
+                if idx is None:
+                    idx = torch.empty(w.shape, dtype=self._index_dtype, device=w.device)
+                idx[..., a:b] = part
+        idx += self._offsets.to(self._index_dtype)
+        return idx.permute(1, 2, 0), w.permute(1, 2, 0)
+
+    def encode(self, u: torch.Tensor, table: torch.Tensor, exact: bool = False) -> torch.Tensor:
+        """Interpolated features [n, L * n_features] of normalised points ``u`` [n, dim].
+
+        ``table`` is the (binarised) parameter table [total_rows, n_features] in ``u``'s dtype.
+        ``exact`` (float64 only): integer corner weights (see :meth:`corner_indices`), so the
+        weighted sums are exact and order-free; the one rounding left is the final division by
+        the weight sum, a correctly rounded elementwise operation.
+        """
+        n = u.shape[0]
+        inside = ((u >= 0) & (u <= 1)).all(dim=-1)  # NaN counts as outside
+        u = torch.where(inside[:, None], u, torch.full_like(u, 0.5))
+        idx, w = self.corner_indices(u, exact=exact)  # [n, L, C]
+        C = idx.shape[-1]
+        idx = idx.reshape(-1, C)
+        w = w.reshape(-1, C)  # (copies [C, n, L] into bag-major order)
+        acc = F.embedding_bag(idx, table, per_sample_weights=w, mode="sum")  # [n*L, F]
+        wn = w.sum(dim=-1).reshape(-1, 1)
+        if exact:
+            out = acc / torch.where(wn == 0, torch.ones_like(wn), wn)
+        else:
+            wn = torch.where(wn == 0, torch.full_like(wn, 1e-9), wn)
+            out = acc * (1.0 / wn)
+        out = out.reshape(n, -1) * inside[:, None].to(out.dtype)
+        return out
+
+
+class BinaryHashGrid(nn.Module):
+    """HAC's mixed 3D grid + 2D planes with binarised entries; a generic binary feature field.
+
+    Args:
+        resolutions_3d, log2_table_3d: the 3D grid (empty resolutions -> no 3D grid).
+        resolutions_2d, log2_table_2d: the planes (empty -> no planes).
+        n_features: features per table row.
+        planes: which 2D planes, from ("xy", "xz", "yz").
+        init_range: parameters start U(-init_range, init_range).
+        oob: "per_grid" (HAC: each grid zeroes when its own input coordinates leave [0, 1]) or
+            "all" (any coordinate outside zeroes every grid).
+        chunk: points per vectorised chunk (memory bound).
+
+    Buffers ``xyz_min``/``xyz_max`` [3] (float32) hold the normalisation bounds (:meth:`set_bounds`).
+    ``forward(xyz [N, 3]) -> [N, output_dim]`` in ``xyz``'s floating dtype.
+    """
+
+    def __init__(self,
+                 resolutions_3d: Sequence[int] = HAC_RESOLUTIONS_3D,
+                 log2_table_3d: int = HAC_LOG2_TABLE_3D,
+                 resolutions_2d: Sequence[int] = HAC_RESOLUTIONS_2D,
+                 log2_table_2d: int = HAC_LOG2_TABLE_2D,
+                 n_features: int = 4,
+                 planes: Sequence[str] = ("xy", "xz", "yz"),
+                 init_range: float = 1e-4,
+                 oob: str = "per_grid",
+                 chunk: int = 65536):
+        super().__init__()
+        if oob not in ("per_grid", "all"):
+            raise ValueError(f"oob must be 'per_grid' or 'all', got {oob!r}")
+        for p in planes:
+            if p not in PLANES:
+                raise ValueError(f"unknown plane {p!r}; choose from {sorted(PLANES)}")
+        self.config = dict(resolutions_3d=tuple(int(r) for r in resolutions_3d),
+                           log2_table_3d=int(log2_table_3d),
+                           resolutions_2d=tuple(int(r) for r in resolutions_2d),
+                           log2_table_2d=int(log2_table_2d), n_features=int(n_features),
+                           planes=tuple(planes), init_range=float(init_range), oob=oob)
+        self.oob = oob
+        self.chunk = int(chunk)
+        self.grids = nn.ModuleDict()
+        self._axes: Dict[str, Tuple[int, ...]] = {}
+        if len(resolutions_3d):
+            self.grids["xyz"] = GridLevels(3, resolutions_3d, log2_table_3d, n_features, init_range)
+            self._axes["xyz"] = (0, 1, 2)
+        if len(resolutions_2d):
+            for p in planes:
+                self.grids[p] = GridLevels(2, resolutions_2d, log2_table_2d, n_features, init_range)
+                self._axes[p] = PLANES[p]
+        if not len(self.grids):
+            raise ValueError("the grid needs at least one 3D level or one plane level")
+        self.register_buffer("xyz_min", torch.zeros(3))
+        self.register_buffer("xyz_max", torch.ones(3))
+
+    # ----------------------------------------------------------------- sizes
+    @property
+    def output_dim(self) -> int:
+        return sum(g.output_dim for g in self.grids.values())
+
+    @property
+    def n_binary(self) -> int:
+        """Number of binary values stored (table entries)."""
+        return sum(g.params.numel() for g in self.grids.values())
+
+    def reset_parameters(self) -> None:
+        for g in self.grids.values():
+            g.reset_parameters()
+
+    # ---------------------------------------------------------------- bounds
+    def set_bounds(self, xyz_min, xyz_max) -> None:
+        """Set the normalisation box (stored as float32; the bitstream keeps these values)."""
+        lo = torch.as_tensor(xyz_min, dtype=torch.float32).reshape(3)
+        hi = torch.as_tensor(xyz_max, dtype=torch.float32).reshape(3)
+        if not (torch.isfinite(lo).all() and torch.isfinite(hi).all()) or (hi <= lo).any():
+            raise ValueError(f"invalid grid bounds min={lo.tolist()} max={hi.tolist()}")
+        self.xyz_min.copy_(lo.to(self.xyz_min.device))
+        self.xyz_max.copy_(hi.to(self.xyz_max.device))
+
+    def normalize(self, xyz: torch.Tensor) -> torch.Tensor:
+        lo = self.xyz_min.to(device=xyz.device, dtype=xyz.dtype)
+        hi = self.xyz_max.to(device=xyz.device, dtype=xyz.dtype)
+        return (xyz - lo) / (hi - lo)
+
+    # --------------------------------------------------------------- tables
+    def binary_tables(self) -> Dict[str, torch.Tensor]:
+        """Binarised tables (STE), name -> [rows, n_features] in {-1, +1}."""
+        return {k: binarize(g.params) for k, g in self.grids.items()}
+
+    def hash_bits(self) -> torch.Tensor:
+        """Estimated size in bits of the binarised tables (differentiable via the STE)."""
+        return binary_entropy_bits(torch.cat([t.reshape(-1) for t in self.binary_tables().values()]))
+
+    def binary_values(self) -> np.ndarray:
+        """All binary entries as uint8 {0, 1} in the canonical order (grid order, row-major)."""
+        with torch.no_grad():
+            bits = [(g.params.detach().clamp(-1, 1) >= 0).reshape(-1).cpu() for g in self.grids.values()]
+        return torch.cat(bits).numpy().astype(np.uint8)
+
+    def load_binary_values(self, bits) -> None:
+        """Set the tables from {0, 1} entries (as decoded): parameters become exactly +-1."""
+        bits = np.asarray(bits).reshape(-1)
+        if bits.size != self.n_binary:
+            raise ValueError(f"expected {self.n_binary} binary values, got {bits.size}")
+        off = 0
+        with torch.no_grad():
+            for g in self.grids.values():
+                n = g.params.numel()
+                b = torch.from_numpy(bits[off:off + n].astype(np.float32)).reshape(g.params.shape)
+                g.params.copy_((b * 2 - 1).to(g.params.device))
+                off += n
+
+    def encode_bits(self) -> bytes:
+        """The binarised tables, Bernoulli range coded with one global p (~1 bit per entry)."""
+        from baseline.codec.rangecoder import encode_bernoulli
+
+        return encode_bernoulli(self.binary_values())
+
+    def decode_bits(self, blob: bytes) -> None:
+        from baseline.codec.rangecoder import decode_bernoulli
+
+        self.load_binary_values(decode_bernoulli(blob, expected_n=self.n_binary))
+
+    # ---------------------------------------------------------------- query
+    def forward(self, xyz: torch.Tensor, normalized: bool = False, exact: bool = False) -> torch.Tensor:
+        """Features [N, output_dim] of world positions ``xyz`` [N, 3] (or normalised ones).
+
+        ``exact``: the bit-reproducible coding path (float64 on the CPU, integer interpolation
+        weights, output rounded to multiples of 2^-FEATURE_BITS); see :meth:`features_fixed`.
+        """
+        if exact:
+            return self.features_fixed(xyz, normalized=normalized) * (2.0 ** -FEATURE_BITS)
+        if xyz.ndim != 2 or xyz.shape[1] != 3:
+            raise ValueError(f"positions must be [N, 3], got {tuple(xyz.shape)}")
+        if not xyz.is_floating_point():
+            xyz = xyz.float()
+        u = xyz if normalized else self.normalize(xyz)
+        tables = {k: t.to(u.dtype) for k, t in self.binary_tables().items()}
+        return self._query(u, tables, exact=False)
+
+    @torch.no_grad()
+    def features_fixed(self, xyz: torch.Tensor, normalized: bool = False) -> torch.Tensor:
+        """Bit-reproducible features as integers (float64 tensor) in units of 2^-FEATURE_BITS.
+
+        Runs in float64 on the CPU whatever the module's device. Every step is either a gather,
+        a correctly rounded elementwise IEEE operation in a fixed order, or a sum of integers
+        below 2^53 (exact in any order), so the result does not depend on the thread count,
+        SIMD width or BLAS: encoder and decoder get identical bits.
+        """
+        if xyz.ndim != 2 or xyz.shape[1] != 3:
+            raise ValueError(f"positions must be [N, 3], got {tuple(xyz.shape)}")
+        x = xyz.detach().to(device="cpu", dtype=torch.float64)
+        if normalized:
+            u = x
+        else:
+            lo = self.xyz_min.detach().to(device="cpu", dtype=torch.float64)
+            hi = self.xyz_max.detach().to(device="cpu", dtype=torch.float64)
+            u = (x - lo) / (hi - lo)
+        tables = {k: t.detach().to(device="cpu", dtype=torch.float64)
+                  for k, t in self.binary_tables().items()}
+        out = self._query(u, tables, exact=True)
+        return torch.round(out * float(1 << FEATURE_BITS))
+
+    def _query(self, u: torch.Tensor, tables: Dict[str, torch.Tensor], exact: bool) -> torch.Tensor:
+        outs = []
+        for s in range(0, max(u.shape[0], 1), self.chunk):
+            uc = u[s:s + self.chunk]
+            parts = [g.encode(uc[:, list(self._axes[k])], tables[k], exact=exact)
+                     for k, g in self.grids.items()]
+            out = torch.cat(parts, dim=-1)
+            if self.oob == "all":
+                inside = ((uc >= 0) & (uc <= 1)).all(dim=-1)
+                out = out * inside[:, None].to(out.dtype)
+            outs.append(out)
+        return torch.cat(outs, dim=0) if len(outs) > 1 else outs[0]
+
+    def extra_repr(self) -> str:
+        c = self.config
+        return (f"3d={c['resolutions_3d']} 2^{c['log2_table_3d']}, 2d={c['resolutions_2d']} "
+                f"2^{c['log2_table_2d']} {c['planes']}, F={c['n_features']}, out={self.output_dim}, "
+                f"binary={self.n_binary}")
+
+
+def auto_grid_layout(n_anchors: int, bounds=None, voxel_size: Optional[float] = None, *,
+                     resolutions_3d: Sequence[int] = HAC_RESOLUTIONS_3D,
+                     resolutions_2d: Sequence[int] = HAC_RESOLUTIONS_2D,
+                     max_log2_table_3d: int = HAC_LOG2_TABLE_3D,
+                     max_log2_table_2d: int = HAC_LOG2_TABLE_2D,
+                     rows_per_anchor: float = 4.0, cells_per_anchor_axis: float = 2.0,
+                     min_log2_table: int = 6, min_levels: int = 1) -> dict:
+    """Constructor arguments of :class:`BinaryHashGrid` sized for a scene with ``n_anchors``.
+
+    The rule (documented choice; HAC itself always uses the full layout):
+
+    * Table size: an anchor touches at most 8 (3D) or 4 (2D) rows per level, and a table row that
+      no anchor touches is dead weight in the bitstream. The table is the next power of two of
+      ``rows_per_anchor * n_anchors`` (default 4x), clamped to [2^min_log2_table, HAC's size].
+    * Levels: anchors sample surfaces, so along one axis there are about ``sqrt(n_anchors)``
+      distinct anchor positions. A level whose interior cell count ``res - 2`` exceeds
+      ``cells_per_anchor_axis * sqrt(n_anchors)`` cannot be resolved by the anchors and is
+      dropped. With ``bounds`` ([2, 3] min/max) and ``voxel_size`` a level is also dropped when
+      its cell ``extent / (res - 2)`` is finer than the voxel size (nothing lives below it).
+      The coarsest ``min_levels`` levels of each grid are always kept.
+
+    For an average Mip-NeRF360 scene (~500k anchors) this returns exactly HAC's layout.
+    """
+    n = max(int(n_anchors), 1)
+    log2 = int(math.ceil(math.log2(max(rows_per_anchor * n, 2))))
+    log2_3d = int(min(max(log2, min_log2_table), max_log2_table_3d))
+    log2_2d = int(min(max(log2, min_log2_table), max_log2_table_2d))
+    max_cells = cells_per_anchor_axis * math.sqrt(n)
+    if bounds is not None and voxel_size is not None and voxel_size > 0:
+        b = np.asarray(bounds, dtype=np.float64).reshape(2, 3)
+        extent = float((b[1] - b[0]).max())
+        max_cells = min(max_cells, extent / float(voxel_size))
+
+    def keep(resolutions):
+        res = sorted(int(r) for r in resolutions)
+        kept = [r for r in res if (r - 2) <= max_cells]
+        if len(kept) < min(min_levels, len(res)):
+            kept = res[:min(min_levels, len(res))]
+        return tuple(kept)
+
+    return dict(resolutions_3d=keep(resolutions_3d), log2_table_3d=log2_3d,
+                resolutions_2d=keep(resolutions_2d), log2_table_2d=log2_2d)

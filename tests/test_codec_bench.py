@@ -1,0 +1,17 @@
+"""The codec benchmark runs end to end on a small payload and reports exact decoding."""
+import torch
+
+from baseline.codec.bench import format_codec_bench, run_codec_bench
+
+torch.set_num_threads(1)
+
+
+def test_bench_small():
+    rows = run_codec_bench(n_anchors=3000, model="hac", threads=1)
+    rows += run_codec_bench(n_anchors=3000, model="factorized", threads=1)
+    assert all(r["exact"] for r in rows)
+    assert all(r["encode_s"] > 0 and r["decode_s"] > 0 for r in rows)
+    text = format_codec_bench(rows)
+    assert "hac" in text and "factorized" in text and "18.72" in text
+    hac, fac = rows
+    assert hac["bytes"]["em.grid"] < 0.2107 * 2 ** 20 and hac["bytes"]["masks"] > 0

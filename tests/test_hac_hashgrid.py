@@ -1,0 +1,248 @@
+"""Binary hash grid against a brute-force per-point implementation of HAC's kernel."""
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from baseline.hac.hashgrid import (FEATURE_BITS, HAC_RESOLUTIONS_2D, HAC_RESOLUTIONS_3D, BinaryHashGrid,
+                                   auto_grid_layout, binarize, binary_entropy_bits, level_rows)
+
+torch.set_num_threads(1)
+PRIMES = (1, 2654435761, 805459861)
+
+
+def brute_force(grid: BinaryHashGrid, xyz: np.ndarray) -> np.ndarray:
+    """Loop over points, grids, levels and corners in plain Python floats / ints."""
+    lo = grid.xyz_min.double().numpy()
+    hi = grid.xyz_max.double().numpy()
+    tables = {k: binarize(g.params.detach()).double().numpy() for k, g in grid.grids.items()}
+    out = []
+    for p in xyz:
+        u = [(float(p[a]) - lo[a]) / (hi[a] - lo[a]) for a in range(3)]
+        row = []
+        for name, g in grid.grids.items():
+            axes = grid._axes[name]
+            c = [u[a] for a in axes]
+            D = len(c)
+            offset = 0
+            for res in g.resolutions:
+                rows = int(math.ceil(min(2 ** g.log2_table, res ** D) / 8) * 8)
+                outside = any(not (0.0 <= v <= 1.0) for v in c)
+                if grid.oob == "all" and any(not (0.0 <= v <= 1.0) for v in u):
+                    outside = True
+                acc = [0.0] * g.n_features
+                wn = 0.0
+                if not outside:
+                    pos = [v * (res - 2) + 0.5 for v in c]
+                    gi = [math.floor(v) for v in pos]
+                    fr = [pos[d] - gi[d] for d in range(D)]
+                    for corner in range(2 ** D):
+                        w = 1.0
+                        cc = []
+                        for d in range(D):
+                            if (corner >> d) & 1:
+                                w *= fr[d]
+                                cc.append(min(gi[d] + 1, res - 1))
+                            else:
+                                w *= 1 - fr[d]
+                                cc.append(gi[d])
+                        if any(x == 0 or x == res - 1 for x in cc):
+                            continue
+                        if res ** D <= rows:
+                            index = sum(cc[d] * res ** d for d in range(D))
+                        else:
+                            h = 0
+                            for d in range(D):
+                                h ^= (cc[d] * PRIMES[d]) & 0xFFFFFFFF
+                            index = h % rows
+                        vals = tables[name][offset + index]
+                        for ch in range(g.n_features):
+                            acc[ch] += w * vals[ch]
+                        wn += w
+                if wn == 0:
+                    wn = 1e-9
+                row += [a / wn for a in acc]
+                offset += rows
+        out.append(row)
+    return np.array(out)
+
+
+def special_points(lo, hi, rng, n_random=12):
+    lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+    pts = [lo, hi, (lo + hi) / 2, np.array([lo[0], hi[1], lo[2]]), np.array([hi[0], lo[1], (lo[2] + hi[2]) / 2])]
+    pts += [lo + rng.random(3) * (hi - lo) for _ in range(n_random)]
+    # outside in one axis only (planes not using that axis stay valid), and far outside
+    pts += [np.array([lo[0] - 0.1, (lo[1] + hi[1]) / 2, (lo[2] + hi[2]) / 2]),
+            np.array([(lo[0] + hi[0]) / 2, hi[1] + 1e-3, (lo[2] + hi[2]) / 2]),
+            np.array([(lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, hi[2] * 5]), hi + 10]
+    # points whose grid position lands exactly on a lattice node of the first level
+    return np.array(pts)
+
+
+@pytest.fixture(scope="module")
+def small_grid():
+    torch.manual_seed(0)
+    # dense and hashed levels in both grid kinds, including a res^dim equal to the table size
+    g = BinaryHashGrid(resolutions_3d=(4, 7, 16, 33), log2_table_3d=9, resolutions_2d=(5, 17, 40),
+                       log2_table_2d=8, n_features=3, init_range=1.0)
+    g.set_bounds([-1.0, 0.5, 2.0], [3.0, 1.5, 6.0])
+    return g
+
+
+def test_small_grid_matches_brute_force(small_grid):
+    rng = np.random.default_rng(1)
+    pts = special_points(small_grid.xyz_min.numpy(), small_grid.xyz_max.numpy(), rng, 40)
+    # exact lattice nodes: u = (k - 0.5) / (res - 2) for the res=16 level
+    nodes = [(k - 0.5) / 14 for k in (1, 3, 8)]
+    for a in nodes:
+        u = np.array([a, nodes[0], nodes[-1]])
+        pts = np.vstack([pts, small_grid.xyz_min.numpy() + u * (small_grid.xyz_max - small_grid.xyz_min).numpy()])
+    kinds = {(g.dim, r): r ** g.dim <= t for g in small_grid.grids.values() for r, t in zip(g.resolutions, g.rows)}
+    assert any(kinds.values()) and not all(kinds.values())  # both dense and hashed levels tested
+    got = small_grid(torch.from_numpy(pts)).detach().numpy()
+    ref = brute_force(small_grid, pts)
+    np.testing.assert_allclose(got, ref, rtol=0, atol=1e-12)
+    # outside in x: the 3D grid, xy and xz planes are zero; the yz plane is not (HAC per-grid rule)
+    i = len(special_points(np.zeros(3), np.ones(3), np.random.default_rng(0), 40)) - 4
+    o = got[i]
+    n3 = small_grid.grids["xyz"].output_dim
+    n2 = small_grid.grids["xy"].output_dim
+    assert np.all(o[:n3 + 2 * n2] == 0) and np.any(o[n3 + 2 * n2:] != 0)
+    assert np.all(got[-len(nodes) - 1] == 0)  # far outside: everything zero
+
+
+def test_oob_all_mode(small_grid):
+    g = BinaryHashGrid(**{k: v for k, v in small_grid.config.items() if k != "oob"}, oob="all")
+    g.load_state_dict(small_grid.state_dict())
+    pts = special_points(g.xyz_min.numpy(), g.xyz_max.numpy(), np.random.default_rng(2), 5)
+    got = g(torch.from_numpy(pts)).detach().numpy()
+    np.testing.assert_allclose(got, brute_force(g, pts), rtol=0, atol=1e-12)
+    assert np.all(got[-4:] == 0)
+
+
+def test_default_layout_matches_brute_force():
+    torch.manual_seed(3)
+    g = BinaryHashGrid()
+    g.set_bounds([-2, -2, -1], [2, 3, 1])
+    pts = special_points(g.xyz_min.numpy(), g.xyz_max.numpy(), np.random.default_rng(4), 6)
+    got = g(torch.from_numpy(pts)).detach().numpy()
+    np.testing.assert_allclose(got, brute_force(g, pts), rtol=0, atol=1e-12)
+    # the float32 path agrees to float32 precision of the positions
+    got32 = g(torch.from_numpy(pts).float()).detach().numpy()
+    np.testing.assert_allclose(got32, got, atol=5e-4)  # float32 positions at res 1026
+
+
+def test_default_layout_sizes():
+    g = BinaryHashGrid()
+    assert g.output_dim == 12 * 4 + 3 * 4 * 4 == 96
+    assert g.n_binary == 1_766_272
+    rows3 = [level_rows(r, 3, 13) for r in HAC_RESOLUTIONS_3D]
+    rows2 = [level_rows(r, 2, 15) for r in HAC_RESOLUTIONS_2D]
+    assert rows3[0] == 5832 and rows3[1:] == [8192] * 11
+    assert rows2 == [16904, 32768, 32768, 32768]
+    assert 4 * (sum(rows3) + 3 * sum(rows2)) == 1_766_272
+
+
+def test_init_and_binarization():
+    torch.manual_seed(0)
+    g = BinaryHashGrid()
+    p = torch.cat([x.params.reshape(-1) for x in g.grids.values()])
+    assert p.abs().max() <= 1e-4 and 0.45 < (p >= 0).float().mean() < 0.55
+    x = torch.tensor([-2.0, -1.0, -1e-9, 0.0, 1e-9, 0.5, 1.0, 3.0])
+    assert binarize(x).tolist() == [-1, -1, -1, 1, 1, 1, 1, 1]
+
+
+def test_ste_gradient_flows_and_stops_outside_unit_interval():
+    torch.manual_seed(0)
+    g = BinaryHashGrid(resolutions_3d=(8, 12), log2_table_3d=8, resolutions_2d=(10,), log2_table_2d=8)
+    with torch.no_grad():
+        prm = g.grids["xyz"].params
+        prm[::2] = 1.5  # |p| > 1: no gradient
+        prm[1::4] = -2.0
+    xyz = torch.rand(500, 3)
+    w = torch.randn(500, g.output_dim)
+    (g(xyz) * w).sum().backward()
+    grad = g.grids["xyz"].params.grad
+    big = g.grids["xyz"].params.detach().abs() > 1
+    assert torch.all(grad[big] == 0)
+    assert (grad[~big] != 0).float().mean() > 0.5  # touched rows get gradient
+    for name in ("xy", "xz", "yz"):
+        assert g.grids[name].params.grad.abs().sum() > 0
+
+
+def test_hash_bits_formula_and_gradient():
+    torch.manual_seed(0)
+    g = BinaryHashGrid(resolutions_3d=(8,), log2_table_3d=8, resolutions_2d=(10,), log2_table_2d=8)
+    b = torch.cat([binarize(x.params).reshape(-1) for x in g.grids.values()])
+    n = b.numel()
+    n1 = int((b > 0).sum())
+    p = n1 / n
+    expect = -n1 * math.log2(p) - (n - n1) * math.log2(1 - p) + 32
+    bits = g.hash_bits()
+    assert bits.item() == pytest.approx(expect, rel=1e-5)
+    bits.backward()
+    assert all(x.params.grad is not None and x.params.grad.abs().sum() > 0 for x in g.grids.values())
+    # extreme p is clamped
+    assert binary_entropy_bits(torch.ones(1000)).item() == pytest.approx(-1000 * math.log2(1 - 1e-6) + 32, rel=1e-4)
+
+
+def test_exact_path_is_close_and_reproducible():
+    torch.manual_seed(5)
+    g = BinaryHashGrid(chunk=1000)
+    g.set_bounds([-1, -1, -1], [1, 1, 1])
+    xyz = torch.rand(3000, 3) * 2.4 - 1.2
+    ref = g(xyz.double()).detach()
+    fx = g.features_fixed(xyz)
+    assert torch.equal(fx, torch.round(fx)) and fx.abs().max() <= 2 ** FEATURE_BITS
+    assert (fx * 2.0 ** -FEATURE_BITS - ref).abs().max() < 2e-4
+    torch.set_num_threads(2)
+    try:
+        g2 = BinaryHashGrid(chunk=777)
+        g2.load_state_dict(g.state_dict())
+        assert torch.equal(g2.features_fixed(xyz), fx)
+    finally:
+        torch.set_num_threads(1)
+
+
+def test_binary_values_round_trip():
+    torch.manual_seed(0)
+    g = BinaryHashGrid()
+    blob = g.encode_bits()
+    assert len(blob) <= 0.2107 * 2 ** 20  # ~1 bit per entry at p ~ 0.5: 0.21 MB
+    h = BinaryHashGrid()
+    h.decode_bits(blob)
+    for k in g.grids:
+        assert torch.equal(binarize(g.grids[k].params), h.grids[k].params)
+    xyz = torch.rand(200, 3)
+    assert torch.equal(g(xyz), h(xyz))
+    assert torch.equal(g.features_fixed(xyz), h.features_fixed(xyz))
+
+
+def test_auto_layout_rule():
+    full = auto_grid_layout(500_000)
+    assert full == dict(resolutions_3d=HAC_RESOLUTIONS_3D, log2_table_3d=13,
+                        resolutions_2d=HAC_RESOLUTIONS_2D, log2_table_2d=15)
+    small = auto_grid_layout(1000)
+    assert small["log2_table_3d"] == 12 and small["resolutions_3d"] == (18, 24, 33, 44, 59)
+    assert small["resolutions_2d"] == (130,)
+    tiny = auto_grid_layout(10)
+    assert tiny["resolutions_3d"] == (18,) and tiny["log2_table_3d"] == 6
+    vox = auto_grid_layout(500_000, bounds=[[0, 0, 0], [1, 1, 1]], voxel_size=0.01)
+    # cells finer than the voxel (extent 1 / 0.01 = 100 cells) are dropped; one plane level is kept
+    assert vox["resolutions_3d"] == (18, 24, 33, 44, 59, 80) and vox["resolutions_2d"] == (130,)
+    g = BinaryHashGrid(**small)
+    assert g.n_binary < BinaryHashGrid().n_binary
+
+
+def test_general_hash_path_matches_brute_force():
+    # res * rows >= 2^31 takes the int64 hash path (uint32 XOR hash, then modulo rows)
+    torch.manual_seed(6)
+    g = BinaryHashGrid(resolutions_3d=(2100,), log2_table_3d=20, resolutions_2d=(5000, 6), log2_table_2d=20,
+                       n_features=1, init_range=1.0)
+    assert [r[2] for r in g.grids["xyz"]._runs] == ["hash64"]
+    assert [r[2] for r in g.grids["xy"]._runs] == ["hash64", "dense"]
+    g.set_bounds([0, 0, 0], [1, 1, 1])
+    pts = special_points(np.zeros(3), np.ones(3), np.random.default_rng(7), 10)
+    got = g(torch.from_numpy(pts)).detach().numpy()
+    np.testing.assert_allclose(got, brute_force(g, pts), rtol=0, atol=1e-12)
