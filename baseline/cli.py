@@ -95,9 +95,12 @@ def cmd_export_ply(args) -> int:
     if trainer.phase == "adaptive":      # export what the codec would store: quantized values
         import torch
 
+        from baseline.pipeline import quantized_positions
+
         idx = torch.arange(trainer.model.n_anchors)
-        xyz_q = trainer.entropy.quantized_positions(trainer.model.xyz.detach())
-        values = trainer.entropy.quantize(xyz_q, trainer.model.coded_values(idx))
+        xyz_q = quantized_positions(trainer.model.xyz)
+        hard = (trainer.model.gaussian_mask().detach() > 0).float()
+        values = trainer.entropy.quantize_for_coding(xyz_q, trainer.model.coded_values(idx), hard)
     n = export_run_ply(trainer.model, scene.train_cameras, out, values)
     print(f"wrote {n} Gaussians to {out}")
     return 0

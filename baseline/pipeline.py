@@ -29,6 +29,15 @@ class ViewResult:
     n_rate_anchors: int = 0
 
 
+def quantized_positions(xyz: torch.Tensor) -> torch.Tensor:
+    """[N,3] positions after the codec's 16-bit quantization (HAC's widened anchor bounds)."""
+    from baseline.codec.rangecoder import anchor_bounds, dequantize_positions, quantize_positions
+
+    lo, hi = anchor_bounds(xyz.detach().cpu().numpy())
+    q = quantize_positions(xyz.detach().cpu().numpy(), lo, hi)
+    return torch.from_numpy(dequantize_positions(q, lo, hi))
+
+
 def visible_anchors(model, cam: Camera) -> torch.Tensor:
     """[M] indices of the anchors that pass the prefilter for ``cam``."""
     with torch.no_grad():
@@ -78,7 +87,8 @@ def render_view(model, cam: Camera, background: torch.Tensor, *, phase: str = "n
         else:
             if quantized_xyz is not None:
                 xyz = quantized_xyz[idx]
-            values = entropy.quantize(xyz, values)
+            hard = (gmask.detach() > 0).float()
+            values = entropy.quantize_for_coding(xyz, values, hard)
     elif phase not in ("none", "decoded"):
         raise ValueError(f"unknown phase '{phase}'")
     g = model.decode(cam.center, idx, values, xyz=xyz)

@@ -97,7 +97,9 @@ def evaluate_trainer(trainer: Trainer, scene, render_dir: Optional[Path] = None,
     cams = scene.test_cameras or scene.train_cameras
     xyz_q = None
     if trainer.phase == "adaptive":
-        xyz_q = trainer.entropy.quantized_positions(trainer.model.xyz.detach())
+        from baseline.pipeline import quantized_positions
+
+        xyz_q = quantized_positions(trainer.model.xyz)
     return evaluate(trainer.model, scene, cams, phase=trainer.phase, entropy=trainer.entropy,
                     backend=trainer.cfg.train.rasterizer, quantized_xyz=xyz_q,
                     render_dir=render_dir, lpips_fn=lpips_fn)

@@ -18,6 +18,9 @@ import torch
 from baseline import registry
 
 
+MIN_INTERVAL = 10
+
+
 def _unique_rows(a: torch.Tensor):
     return torch.unique(a, dim=0, return_inverse=True)
 
@@ -90,7 +93,10 @@ class ScaffoldDensify:
         self.stat_from = at(d.stat_from)
         self.update_from = at(d.update_from)
         self.update_until = at(d.update_until)
-        self.interval = max(1, at(d.update_interval))
+        # Scaled with the run like every milestone, but never below MIN_INTERVAL iterations: the
+        # visibility counts that gate growing (> interval*st/2) and pruning (> interval*st) need
+        # a few views to mean anything.
+        self.interval = max(MIN_INTERVAL, at(d.update_interval))
         self.skip = (at(d.skip_from), at(d.skip_until))
         self.grow_count = self.interval * d.success_threshold * 0.5
         self.prune_count = self.interval * d.success_threshold

@@ -29,7 +29,10 @@ class HACPhases:
     def before_step(self, it: int) -> None:
         ph = phase_at(it, self.noise_from, self.context_from)
         if ph == "adaptive" and self.t.phase != "adaptive":
-            self.t.entropy.set_bounds(self.t.model.xyz.detach())
+            ent = self.t.entropy
+            if hasattr(ent, "set_bounds"):     # context models normalise by the anchor box
+                xyz = self.t.model.xyz.detach()
+                ent.set_bounds(xyz.min(0).values, xyz.max(0).values)
         self.t.phase = ph
 
 

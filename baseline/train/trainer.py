@@ -23,7 +23,7 @@ from tqdm import tqdm
 from baseline import registry
 from baseline.config import Config, to_toml
 from baseline.pipeline import render_view
-from baseline.scaffold.build import build_entropy, build_model
+from baseline.scaffold.build import build_entropy, build_model, entropy_param_groups
 from baseline.train.losses import lr_exp, reconstruction_loss
 
 CHECKPOINT_NAME = "checkpoint.pt"
@@ -87,7 +87,7 @@ class Trainer:
         groups += m.provider.param_groups(cfg)
         if m.refiner is not None:
             groups += m.refiner.param_groups(cfg)
-        groups += self.entropy.param_groups(cfg)
+        groups += entropy_param_groups(cfg, self.entropy)
         for g in groups:
             g["lr"] = g["lr_init"]
         return [g for g in groups if g["params"]]
@@ -129,7 +129,7 @@ class Trainer:
         if out.means2d.requires_grad:
             out.means2d.retain_grad()
         loss, l1 = reconstruction_loss(out.image, gt, cfg.train.lambda_dssim)
-        terms = {"l1": float(l1)}
+        terms = {"l1": float(l1.detach())}
         if g.scales.shape[0] > 0 and cfg.train.lambda_volume > 0:
             loss = loss + cfg.train.lambda_volume * g.scales.prod(dim=1).mean()
         if self.phase == "adaptive":
@@ -161,7 +161,7 @@ class Trainer:
         with torch.no_grad():
             mse = ((out.image.detach().clamp(0, 1) - gt) ** 2).mean()
             terms["psnr"] = float(-10 * torch.log10(mse.clamp_min(1e-10)))
-        terms["loss"] = float(loss)
+        terms["loss"] = float(loss.detach())
         terms["gaussians"] = int(g.means.shape[0])
         return terms
 
