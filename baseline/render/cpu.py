@@ -8,7 +8,7 @@ tile binning, compositing, per-pair gradient reduction); this module only conver
 
 Threads: the kernels use ``numba.set_num_threads(n)`` before every call, with ``n`` from
 :func:`set_num_threads` or else ``torch.get_num_threads()`` (capped by numba's pool size,
-``NUMBA_NUM_THREADS``). First use compiles the kernels (about a minute); the machine code is
+``NUMBA_NUM_THREADS``). First use compiles the kernels (15-30 s); the machine code is
 cached on disk by numba (``cache=True``, in ``__pycache__`` next to the module or under
 ``NUMBA_CACHE_DIR``) and the wait is announced with one line on stderr.
 
@@ -195,7 +195,7 @@ class _RasterState:
     """What the forward keeps for the backward (NumPy arrays)."""
 
     __slots__ = ("means2d", "conics", "tile_start", "pair_gauss", "pair_slot", "gauss_start",
-                 "T", "last", "n_pairs")
+                 "pair_rows", "T", "last", "n_pairs")
 
 
 def _sorted_visible(depths: np.ndarray, radii: np.ndarray, rect: np.ndarray) -> np.ndarray:
@@ -228,9 +228,11 @@ def _raster_fwd_np(K, proj: _Proj, opac32, colors32, bg32, cam: _CamParams,
         if n_tiles and int(np.diff(st.tile_start).max()) >= 1 << 24:
             raise ValueError("more than 2^24 Gaussians overlap one 16x16 tile; the CPU "
                              "rasterizer stores tile-local indices as float32")
+        st.pair_rows = np.zeros(st.n_pairs, np.int32)
         with numba.parallel_chunksize(_TILE_CHUNK):
             K.raster_fwd(st.means2d, st.conics, opac32, colors32, bg32, proj.radii,
-                         st.tile_start, st.pair_gauss, w, h, cam.tiles_x, image, st.T, st.last)
+                         st.tile_start, st.pair_gauss, w, h, cam.tiles_x, image, st.T, st.last,
+                         st.pair_rows)
     return st, image
 
 
@@ -250,8 +252,8 @@ def _raster_bwd_np(K, proj: _Proj, opac32, colors32, bg32, cam: _CamParams, st, 
         _apply_threads()
         with numba.parallel_chunksize(_TILE_CHUNK):
             K.raster_bwd(st.means2d, st.conics, opac32, colors32, bg32, proj.radii,
-                         st.tile_start, st.pair_gauss, st.pair_slot, cam.width, cam.height,
-                         cam.tiles_x, st.T, st.last, v_image, v_alpha, pair)
+                         st.tile_start, st.pair_gauss, st.pair_slot, st.pair_rows, cam.width,
+                         cam.height, cam.tiles_x, st.T, st.last, v_image, v_alpha, pair)
         K.reduce_pairs(pair, st.gauss_start, v_means2d, v_conics, v_opac, v_colors)
     return v_means2d, v_conics, v_opac, v_colors
 
