@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import math
 
-import numpy as np
 import pytest
 import torch
 
@@ -481,8 +480,8 @@ def test_prefilter_anchors():
     z = pts[:, 2]
     assert not v[z <= 0.2].any()
     u = cam.fx * pts[:, 0] / z + cam.cx
-    inside = (z > 0.2) & (u > 1) & (u < cam.width - 1) & \
-        ((cam.fy * pts[:, 1] / z + cam.cy) > 1) & ((cam.fy * pts[:, 1] / z + cam.cy) < cam.height - 1)
+    v_ = cam.fy * pts[:, 1] / z + cam.cy
+    inside = (z > 0.2) & (u > 1) & (u < cam.width - 1) & (v_ > 1) & (v_ < cam.height - 1)
     assert v[inside].all()
 
 

@@ -15,8 +15,9 @@ cached on disk by numba (``cache=True``, in ``__pycache__`` next to the module o
 Threading layer: unless the user chose one (``NUMBA_THREADING_LAYER`` or
 ``numba.config.THREADING_LAYER``), numba's ``workqueue`` layer is selected before the first
 parallel launch. GNU OpenMP (numba's default here) keeps its workers spinning after each
-kernel, which was measured to slow the PyTorch code between kernels by up to 50x on a busy
-2-core machine, and it is not fork-safe (data-loader workers). ``workqueue`` is not safe for
+kernel; on a busy 2-core machine that was measured to slow the small PyTorch conversions
+between the kernels ~50x (about 50 ms per 50k-Gaussian forward), and it is not fork-safe
+(data-loader workers). ``workqueue`` is not safe for
 concurrent calls from several Python threads, so kernel launches here are serialized by a lock.
 Tiles differ a lot in cost, so the raster kernels are scheduled dynamically in small chunks
 (``numba.parallel_chunksize``).
@@ -24,12 +25,11 @@ Tiles differ a lot in cost, so the raster kernels are scheduled dynamically in s
 from __future__ import annotations
 
 import logging
-import math
 import os
 import sys
 import threading
 import time
-from typing import Optional, Tuple
+from typing import Optional
 
 import numpy as np
 import torch
@@ -91,7 +91,7 @@ def kernels():
         from . import _kernels as K
 
         fns = (K.project_fwd, K.project_bwd, K.bin_pairs, K.raster_fwd, K.raster_bwd,
-               K.reduce_pairs)
+               K.reduce_pairs, K._fwd_tile, K._bwd_tile)
         cold = not all(_cache_is_warm(f) for f in fns)
         if cold:
             print(COMPILE_MESSAGE, file=sys.stderr, flush=True)
@@ -202,7 +202,10 @@ def _sorted_visible(depths: np.ndarray, radii: np.ndarray, rect: np.ndarray) -> 
     """[M] int64 ids of binned Gaussians, front to back (stable: ties keep index order)."""
     vis = np.nonzero((radii.max(axis=1) > 0) & (rect[:, 2] > rect[:, 0])
                      & (rect[:, 3] > rect[:, 1]))[0]
-    order = vis[np.argsort(depths[vis], kind="stable")]
+    keys = np.ascontiguousarray(depths[vis], dtype=np.float64)
+    if keys.size and keys.min() > 0:
+        keys = keys.view(np.int64)  # same order for positive floats; integer sort is faster
+    order = vis[np.argsort(keys, kind="stable")]
     return np.ascontiguousarray(order, dtype=np.int64)
 
 

@@ -18,7 +18,6 @@ a contribution.
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from typing import Optional
 
@@ -126,7 +125,8 @@ def project_reference(means: Tensor, quats: Tensor, scales: Tensor, opacities: T
         ry = torch.ceil(extend * c_s.detach().sqrt())
         mx, my = means2d.detach().unbind(-1)
         ok = ok & ((rx > 0) | (ry > 0))
-        ok = ok & ((mx + rx > 0) & (mx - rx < camera.width) & (my + ry > 0) & (my - ry < camera.height))
+        ok = ok & (mx + rx > 0) & (mx - rx < camera.width)
+        ok = ok & (my + ry > 0) & (my - ry < camera.height)
         rx = torch.where(ok, rx.clamp(max=2.0 ** 30), 0 * rx)
         ry = torch.where(ok, ry.clamp(max=2.0 ** 30), 0 * ry)
         tiles_x = -(-camera.width // TILE_SIZE)
