@@ -213,6 +213,16 @@ def test_gradients_opacity_clamp_and_transmittance_cutoff():
     assert torch.isfinite(g1["opacities"]).all()
 
 
+def test_medium_scene_many_tiles():
+    """Thousands of Gaussians over 30 tiles (binning chunks, early tile stops, row masks)."""
+    ts, cam = random_scene(3000, 96, 72, seed=40, sigma_px=(0.5, 10.0))
+    wts = loss_weights(cam, seed=40)
+    out, g1 = render("cpu", ts, cam, None, grad=True, weights=wts)
+    ref, g2 = render("reference", ts, cam, None, grad=True, weights=wts, dtype=torch.float64)
+    assert_forward_close(out, ref)
+    assert_grads_close(g1, g2)
+
+
 def test_background_gradient():
     ts, cam = random_scene(60, 20, 14, seed=3, opacity=(0.05, 0.5))
     wts = loss_weights(cam, seed=3)

@@ -94,7 +94,6 @@ def project_reference(means: Tensor, quats: Tensor, scales: Tensor, opacities: T
     """Project N Gaussians (see conventions). Shapes: means [N,3], quats [N,4], scales [N,3],
     opacities [N] (only for the opacity-aware extent). Computes in ``means.dtype``."""
     dt, dev = means.dtype, means.device
-    n = means.shape[0]
     vm = camera.viewmat.to(dev, dt)
     R, t = vm[:3, :3], vm[:3, 3]
     p = means @ R.T + t
