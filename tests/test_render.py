@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import math
 
-import numpy as np
 import pytest
 import torch
 
@@ -212,6 +211,16 @@ def test_gradients_opacity_clamp_and_transmittance_cutoff():
     # Gaussians at/behind the cut-off in the stack receive no gradient there except via
     # pixels they do reach; the clamped ones get no opacity gradient at their centre
     assert torch.isfinite(g1["opacities"]).all()
+
+
+def test_medium_scene_many_tiles():
+    """Thousands of Gaussians over 30 tiles (binning chunks, early tile stops, row masks)."""
+    ts, cam = random_scene(3000, 96, 72, seed=40, sigma_px=(0.5, 10.0))
+    wts = loss_weights(cam, seed=40)
+    out, g1 = render("cpu", ts, cam, None, grad=True, weights=wts)
+    ref, g2 = render("reference", ts, cam, None, grad=True, weights=wts, dtype=torch.float64)
+    assert_forward_close(out, ref)
+    assert_grads_close(g1, g2)
 
 
 def test_background_gradient():
@@ -481,8 +490,8 @@ def test_prefilter_anchors():
     z = pts[:, 2]
     assert not v[z <= 0.2].any()
     u = cam.fx * pts[:, 0] / z + cam.cx
-    inside = (z > 0.2) & (u > 1) & (u < cam.width - 1) & \
-        ((cam.fy * pts[:, 1] / z + cam.cy) > 1) & ((cam.fy * pts[:, 1] / z + cam.cy) < cam.height - 1)
+    v_ = cam.fy * pts[:, 1] / z + cam.cy
+    inside = (z > 0.2) & (u > 1) & (u < cam.width - 1) & (v_ > 1) & (v_ < cam.height - 1)
     assert v[inside].all()
 
 

@@ -8,15 +8,16 @@ tile binning, compositing, per-pair gradient reduction); this module only conver
 
 Threads: the kernels use ``numba.set_num_threads(n)`` before every call, with ``n`` from
 :func:`set_num_threads` or else ``torch.get_num_threads()`` (capped by numba's pool size,
-``NUMBA_NUM_THREADS``). First use compiles the kernels (about a minute); the machine code is
+``NUMBA_NUM_THREADS``). First use compiles the kernels (15-30 s); the machine code is
 cached on disk by numba (``cache=True``, in ``__pycache__`` next to the module or under
 ``NUMBA_CACHE_DIR``) and the wait is announced with one line on stderr.
 
 Threading layer: unless the user chose one (``NUMBA_THREADING_LAYER`` or
 ``numba.config.THREADING_LAYER``), numba's ``workqueue`` layer is selected before the first
 parallel launch. GNU OpenMP (numba's default here) keeps its workers spinning after each
-kernel, which was measured to slow the PyTorch code between kernels by up to 50x on a busy
-2-core machine, and it is not fork-safe (data-loader workers). ``workqueue`` is not safe for
+kernel; on a busy 2-core machine that was measured to slow the small PyTorch conversions
+between the kernels ~50x (about 50 ms per 50k-Gaussian forward), and it is not fork-safe
+(data-loader workers). ``workqueue`` is not safe for
 concurrent calls from several Python threads, so kernel launches here are serialized by a lock.
 Tiles differ a lot in cost, so the raster kernels are scheduled dynamically in small chunks
 (``numba.parallel_chunksize``).
@@ -24,12 +25,11 @@ Tiles differ a lot in cost, so the raster kernels are scheduled dynamically in s
 from __future__ import annotations
 
 import logging
-import math
 import os
 import sys
 import threading
 import time
-from typing import Optional, Tuple
+from typing import Optional
 
 import numpy as np
 import torch
@@ -91,7 +91,7 @@ def kernels():
         from . import _kernels as K
 
         fns = (K.project_fwd, K.project_bwd, K.bin_pairs, K.raster_fwd, K.raster_bwd,
-               K.reduce_pairs)
+               K.reduce_pairs, K._fwd_tile, K._bwd_tile)
         cold = not all(_cache_is_warm(f) for f in fns)
         if cold:
             print(COMPILE_MESSAGE, file=sys.stderr, flush=True)
@@ -195,14 +195,17 @@ class _RasterState:
     """What the forward keeps for the backward (NumPy arrays)."""
 
     __slots__ = ("means2d", "conics", "tile_start", "pair_gauss", "pair_slot", "gauss_start",
-                 "T", "last", "n_pairs")
+                 "pair_rows", "T", "last", "n_pairs")
 
 
 def _sorted_visible(depths: np.ndarray, radii: np.ndarray, rect: np.ndarray) -> np.ndarray:
     """[M] int64 ids of binned Gaussians, front to back (stable: ties keep index order)."""
     vis = np.nonzero((radii.max(axis=1) > 0) & (rect[:, 2] > rect[:, 0])
                      & (rect[:, 3] > rect[:, 1]))[0]
-    order = vis[np.argsort(depths[vis], kind="stable")]
+    keys = np.ascontiguousarray(depths[vis], dtype=np.float64)
+    if keys.size and keys.min() > 0:
+        keys = keys.view(np.int64)  # same order for positive floats; integer sort is faster
+    order = vis[np.argsort(keys, kind="stable")]
     return np.ascontiguousarray(order, dtype=np.int64)
 
 
@@ -228,9 +231,11 @@ def _raster_fwd_np(K, proj: _Proj, opac32, colors32, bg32, cam: _CamParams,
         if n_tiles and int(np.diff(st.tile_start).max()) >= 1 << 24:
             raise ValueError("more than 2^24 Gaussians overlap one 16x16 tile; the CPU "
                              "rasterizer stores tile-local indices as float32")
+        st.pair_rows = np.zeros(st.n_pairs, np.int32)
         with numba.parallel_chunksize(_TILE_CHUNK):
             K.raster_fwd(st.means2d, st.conics, opac32, colors32, bg32, proj.radii,
-                         st.tile_start, st.pair_gauss, w, h, cam.tiles_x, image, st.T, st.last)
+                         st.tile_start, st.pair_gauss, w, h, cam.tiles_x, image, st.T, st.last,
+                         st.pair_rows)
     return st, image
 
 
@@ -250,8 +255,8 @@ def _raster_bwd_np(K, proj: _Proj, opac32, colors32, bg32, cam: _CamParams, st, 
         _apply_threads()
         with numba.parallel_chunksize(_TILE_CHUNK):
             K.raster_bwd(st.means2d, st.conics, opac32, colors32, bg32, proj.radii,
-                         st.tile_start, st.pair_gauss, st.pair_slot, cam.width, cam.height,
-                         cam.tiles_x, st.T, st.last, v_image, v_alpha, pair)
+                         st.tile_start, st.pair_gauss, st.pair_slot, st.pair_rows, cam.width,
+                         cam.height, cam.tiles_x, st.T, st.last, v_image, v_alpha, pair)
         K.reduce_pairs(pair, st.gauss_start, v_means2d, v_conics, v_opac, v_colors)
     return v_means2d, v_conics, v_opac, v_colors
 

@@ -18,7 +18,6 @@ a contribution.
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from typing import Optional
 
@@ -95,7 +94,6 @@ def project_reference(means: Tensor, quats: Tensor, scales: Tensor, opacities: T
     """Project N Gaussians (see conventions). Shapes: means [N,3], quats [N,4], scales [N,3],
     opacities [N] (only for the opacity-aware extent). Computes in ``means.dtype``."""
     dt, dev = means.dtype, means.device
-    n = means.shape[0]
     vm = camera.viewmat.to(dev, dt)
     R, t = vm[:3, :3], vm[:3, 3]
     p = means @ R.T + t
@@ -126,7 +124,8 @@ def project_reference(means: Tensor, quats: Tensor, scales: Tensor, opacities: T
         ry = torch.ceil(extend * c_s.detach().sqrt())
         mx, my = means2d.detach().unbind(-1)
         ok = ok & ((rx > 0) | (ry > 0))
-        ok = ok & ((mx + rx > 0) & (mx - rx < camera.width) & (my + ry > 0) & (my - ry < camera.height))
+        ok = ok & (mx + rx > 0) & (mx - rx < camera.width)
+        ok = ok & (my + ry > 0) & (my - ry < camera.height)
         rx = torch.where(ok, rx.clamp(max=2.0 ** 30), 0 * rx)
         ry = torch.where(ok, ry.clamp(max=2.0 ** 30), 0 * ry)
         tiles_x = -(-camera.width // TILE_SIZE)
