@@ -69,19 +69,89 @@ def _print_results(res: dict) -> None:
 
 def cmd_eval(args) -> int:
     from baseline.eval.metrics import load_lpips
-    from baseline.run import evaluate_trainer, load_run, write_json_atomic
+    from baseline.run import Renderable, write_json_atomic
 
-    trainer, scene = load_run(args.run)
+    r = Renderable(args.target, args.scene)
     lpips_fn, reason = load_lpips(args.lpips_weights)
     if lpips_fn is None:
         print(reason)
-    res = evaluate_trainer(trainer, scene, render_dir=Path(args.run) / "renders" / "test",
-                           lpips_fn=lpips_fn)
+    target = Path(args.target)
+    out_dir = target if target.is_dir() else target.with_suffix("")
+    res = r.evaluate(args.split, render_dir=out_dir / "renders" / args.split, lpips_fn=lpips_fn)
+    res["phase"] = r.phase
+    if r.phase == "decoded":
+        res["bytes"] = target.stat().st_size
+        res["decode_s"] = r.decoded.decode_s
     print(json.dumps(res, indent=2))
+    path = (target / "results.json") if target.is_dir() else target.with_suffix(".results.json")
+    full = json.loads(path.read_text()) if path.exists() else {}
+    full[args.split] = res
+    write_json_atomic(path, full)
+    return 0
+
+
+def cmd_render(args) -> int:
+    from baseline.run import Renderable
+
+    r = Renderable(args.target, args.scene)
+    out = Path(args.output)
+    res = r.evaluate(args.split, render_dir=out)
+    print(f"rendered {res['n_views']} {args.split} views to {out} "
+          f"(PSNR {res['psnr']:.3f} dB, FPS {res['fps']:.1f})")
+    return 0
+
+
+def cmd_encode(args) -> int:
+    from baseline.codec.model_codec import encode_model, file_info, format_info
+    from baseline.run import load_run, write_json_atomic
+
+    trainer, scene = load_run(args.run)
+    if trainer.phase != "adaptive":
+        print(f"note: {args.run} stopped before the entropy model was trained (phase "
+              f"'{trainer.phase}'); the file is coded with an untrained context model")
+    scene_path = json.loads((Path(args.run) / "scene.json").read_text())["path"]
+    st = encode_model(trainer.cfg, trainer.model, trainer.entropy, args.output,
+                      extra_header={"scene": scene_path})
+    print(format_info(file_info(args.output)))
+    print(f"wrote {args.output}: {st['bytes']} bytes ({st['bytes'] / 2**20:.4f} MB), "
+          f"{st['anchors']} anchors, encode {st['encode_s']:.2f} s")
     path = Path(args.run) / "results.json"
     full = json.loads(path.read_text()) if path.exists() else {}
-    full["test"] = res
+    full["encode"] = {"file": str(args.output), "bytes": st["bytes"], "encode_s": st["encode_s"],
+                      "anchors": st["anchors"], "sections": st["sections"]}
     write_json_atomic(path, full)
+    return 0
+
+
+def cmd_decode(args) -> int:
+    from baseline.codec.model_codec import decode_model
+    from baseline.eval.export import write_ply
+    from baseline.run import Renderable, write_json_atomic
+
+    out = Path(args.output or Path(args.file).with_suffix(""))
+    out.mkdir(parents=True, exist_ok=True)
+    dec = decode_model(args.file)
+    print(f"decoded {args.file}: {dec.model.n_anchors} anchors in {dec.decode_s:.2f} s")
+    res = {"file": str(args.file), "bytes": Path(args.file).stat().st_size, "decode_s": dec.decode_s,
+           "anchors": dec.model.n_anchors}
+    if args.render != "none":
+        r = Renderable(args.file, args.scene)
+        res[args.render] = r.evaluate(args.render, render_dir=out / "renders" / args.render)
+        t = res[args.render]
+        print(f"{args.render}: PSNR {t['psnr']:.3f} dB  SSIM {t['ssim']:.4f}  FPS {t['fps']:.1f}")
+        from baseline.eval.export import export_run_ply
+
+        export_run_ply(r.model, r.scene.train_cameras, out / "point_cloud.ply")
+    write_json_atomic(out / "results.json", res)
+    return 0
+
+
+def cmd_info(args) -> int:
+    from baseline.codec.model_codec import file_info, format_info
+
+    info = file_info(args.file)
+    print(f"{args.file}: {info['n_anchors']} anchors, {info['header']}")
+    print(format_info(info))
     return 0
 
 
@@ -163,10 +233,35 @@ def main(argv=None) -> int:
     _config_args(p)
     p.set_defaults(fn=cmd_train)
 
-    p = sub.add_parser("eval", help="evaluate a run on its test views")
-    p.add_argument("run")
+    p = sub.add_parser("eval", help="evaluate a run folder or a .pgs file on the test views")
+    p.add_argument("target", help="run folder or .pgs file")
+    p.add_argument("--split", choices=["test", "train"], default="test")
+    p.add_argument("--scene", default=None, help="scene path (default: the one recorded)")
     p.add_argument("--lpips-weights", default=None, help="LPIPS weights file (else unavailable)")
     p.set_defaults(fn=cmd_eval)
+
+    p = sub.add_parser("render", help="render the views of a run folder or a .pgs file to PNG")
+    p.add_argument("target")
+    p.add_argument("-o", "--output", required=True)
+    p.add_argument("--split", choices=["test", "train"], default="test")
+    p.add_argument("--scene", default=None)
+    p.set_defaults(fn=cmd_render)
+
+    p = sub.add_parser("encode", help="compress a trained run into one .pgs file")
+    p.add_argument("run")
+    p.add_argument("-o", "--output", required=True)
+    p.set_defaults(fn=cmd_encode)
+
+    p = sub.add_parser("decode", help="decode a .pgs file (PLY export, optional renders + metrics)")
+    p.add_argument("file")
+    p.add_argument("-o", "--output", default=None)
+    p.add_argument("--render", choices=["test", "train", "none"], default="none")
+    p.add_argument("--scene", default=None)
+    p.set_defaults(fn=cmd_decode)
+
+    p = sub.add_parser("info", help="per-section bit allocation of a .pgs file")
+    p.add_argument("file")
+    p.set_defaults(fn=cmd_info)
 
     p = sub.add_parser("export-ply", help="write the decoded neural Gaussians as a 3DGS PLY")
     p.add_argument("run")
@@ -191,7 +286,7 @@ def main(argv=None) -> int:
     try:
         registry.ensure_loaded()
         return args.fn(args)
-    except (ValueError, FileNotFoundError, KeyError) as e:
+    except (ValueError, FileNotFoundError, KeyError, OSError) as e:
         print(f"pgs {args.cmd}: error: {e}", file=sys.stderr)
         return 2
 

@@ -117,3 +117,50 @@ def load_run(run_dir: str | Path, progress: bool = False) -> tuple[Trainer, obje
     trainer = Trainer(cfg, scene, run_dir, progress=progress)
     trainer.load_checkpoint(run_dir / CHECKPOINT_NAME)
     return trainer, scene
+
+
+class Renderable:
+    """Anything `pgs eval` / `pgs render` can draw: a run folder or a decoded ``.pgs`` file."""
+
+    def __init__(self, target: str | Path, scene_override: Optional[str] = None):
+        target = Path(target)
+        self.target = target
+        self.entropy = None
+        self.xyz_q = None
+        if target.is_file():
+            from baseline.codec.model_codec import decode_model
+
+            dec = decode_model(target)
+            self.decoded = dec
+            self.cfg, self.model, self.phase = dec.cfg, dec.model, "decoded"
+            scene_path = scene_override or dec.header.get("scene")
+            if not scene_path:
+                raise ValueError(f"{target} does not record its scene; pass --scene PATH")
+        else:
+            trainer, _ = None, None
+            cfg = from_toml(target / "config.toml") if (target / "config.toml").exists() else None
+            if cfg is None:
+                raise FileNotFoundError(f"{target} is neither a .pgs file nor a run folder")
+            trainer, scene = load_run(target)
+            self.trainer = trainer
+            self.cfg, self.model, self.phase = trainer.cfg, trainer.model, trainer.phase
+            self.entropy = trainer.entropy
+            if self.phase == "adaptive":
+                from baseline.pipeline import quantized_positions
+
+                self.xyz_q = quantized_positions(trainer.model.xyz)
+            scene_path = scene_override or json.loads((target / "scene.json").read_text())["path"]
+            if scene_override is None:
+                self.scene = scene
+        if not hasattr(self, "scene"):
+            self.scene = load_scene_for(self.cfg, scene_path)
+        self.scene_path = scene_path
+
+    def evaluate(self, split: str = "test", render_dir: Optional[Path] = None, lpips_fn=None) -> dict:
+        from baseline.eval.evaluate import evaluate
+
+        cams = self.scene.test_cameras if split == "test" else self.scene.train_cameras
+        cams = cams or self.scene.train_cameras
+        return evaluate(self.model, self.scene, cams, phase=self.phase, entropy=self.entropy,
+                        backend=self.cfg.train.rasterizer, quantized_xyz=self.xyz_q,
+                        render_dir=render_dir, lpips_fn=lpips_fn)

@@ -237,7 +237,10 @@ class GridLevels(nn.Module):
         C = idx.shape[-1]
         idx = idx.reshape(-1, C)
         w = w.reshape(-1, C)  # (copies [C, n, L] into bag-major order)
-        acc = F.embedding_bag(idx, table, per_sample_weights=w, mode="sum")  # [n*L, F]
+        if table.requires_grad and torch.is_grad_enabled():
+            acc = _WeightedGather.apply(table, idx, w)                     # [n*L, F]
+        else:
+            acc = F.embedding_bag(idx, table, per_sample_weights=w, mode="sum")  # [n*L, F]
         wn = w.sum(dim=-1).reshape(-1, 1)
         if exact:
             out = acc / torch.where(wn == 0, torch.ones_like(wn), wn)
@@ -246,6 +249,29 @@ class GridLevels(nn.Module):
             out = acc * (1.0 / wn)
         out = out.reshape(n, -1) * inside[:, None].to(out.dtype)
         return out
+
+
+class _WeightedGather(torch.autograd.Function):
+    """``out[b] = sum_c w[b, c] * table[idx[b, c]]`` with a scatter-add backward.
+
+    The forward is ``embedding_bag`` (fast). Its own dense backward sorts the indices and was
+    measured 6x slower than one ``index_add_`` here (170 ms vs 30 ms for 360k bags of 8 on 2
+    cores), which made the context/SFP grids the largest cost of a training step.
+    """
+
+    @staticmethod
+    def forward(ctx, table, idx, w):
+        ctx.save_for_backward(idx, w)
+        ctx.rows = table.shape[0]
+        return F.embedding_bag(idx, table, per_sample_weights=w, mode="sum")
+
+    @staticmethod
+    def backward(ctx, g):
+        idx, w = ctx.saved_tensors
+        src = (w[..., None].to(g.dtype) * g[:, None, :]).reshape(-1, g.shape[-1])
+        gt = torch.zeros(ctx.rows, g.shape[-1], dtype=g.dtype, device=g.device)
+        gt.index_add_(0, idx.reshape(-1).long(), src)
+        return gt, None, None
 
 
 class BinaryHashGrid(nn.Module):

@@ -99,6 +99,7 @@ class AnchorModel(nn.Module):
         self.n_offsets = K
         self.cfg = cfg_model
         self.mask_threshold = mask_threshold
+        self.fixed_values: Optional[dict[str, torch.Tensor]] = None
         self.per_anchor = nn.ParameterDict()
         self.grow_rules: dict[str, Optional[GrowRule]] = {}
         self.add_per_anchor("xyz", xyz.float().clone(), None, trainable=False)
@@ -143,6 +144,8 @@ class AnchorModel(nn.Module):
 
         scaling is coded AFTER exp (SPEC.md section 3); offsets flattened to [M, 3K].
         """
+        if self.fixed_values is not None:       # a decoded model: the values are the decoded ones
+            return {k: v[idx] for k, v in self.fixed_values.items()}
         vals = dict(self.provider.coded_values(idx))
         vals["scaling"] = torch.exp(self.per_anchor["scaling"][idx])
         vals["offsets"] = self.per_anchor["offsets"][idx].reshape(len(idx), -1)

@@ -1,0 +1,261 @@
+"""Encode a trained anchor model into one self-contained ``.pgs`` file, decode it back.
+
+Sections (each with length + CRC32 in the container, DESIGN.md "Bitstream"):
+    positions            uint16 [N,3] anchor positions (16-bit, HAC's widened bounds in header)
+    masks                Bernoulli-coded Gaussian masks [N,K] (one global p)
+    em.grid / em.mlp     the entropy model (binary hash grid, context MLP + grid bounds)
+    decoder.weights      the opacity / covariance / colour MLPs
+    provider.*           what the feature provider owns (Predict-GS: its SFP grid and fusion MLP)
+    refiner.weights      the refiner's networks (Predict-GS: MGRD)
+    <attribute>          each coded attribute (feat or residual, scaling, offsets), range coded
+
+Only valid anchors (any Gaussian mask on) are stored. Network weights are rounded to the stored
+precision (``codec.weight_dtype``) before anything is coded, so the encoder's probabilities and
+renders are the decoder's. The reported size is the file's byte count.
+
+Size groups (``pgs info``): ``feature`` = the provider's own coded attribute(s) and every section
+the provider owns (HAC: feat; Predict-GS: SFP grid + fusion MLP + residual), as the paper's
+Table 3; the rest is split into anchor, scaling, offsets, hash, masks, mlps, header.
+"""
+from __future__ import annotations
+
+import dataclasses
+import time
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+import torch
+import torch.nn as nn
+
+from baseline.codec.container import BitstreamError, read_container, write_container
+from baseline.codec.rangecoder import (anchor_bounds, decode_bernoulli, dequantize_positions,
+                                       encode_bernoulli, pack_positions, quantize_positions,
+                                       unpack_positions)
+from baseline.codec.weights import pack_state_dict, round_module_, unpack_state_dict
+
+FORMAT = "pgs-anchor-model"
+MASK_LOGIT = 20.0      # decoded masks as logits: sigmoid(+-20) is unambiguously on / off
+
+
+def _grid_modules(module: nn.Module):
+    from baseline.hac.hashgrid import BinaryHashGrid
+
+    return [(n, m) for n, m in module.named_modules() if isinstance(m, BinaryHashGrid)]
+
+
+def _module_sections(prefix: str, module: nn.Module, precision: str) -> list[tuple[str, bytes]]:
+    """Binary grids of ``module`` as Bernoulli-coded sections, everything else as weights."""
+    out = []
+    grids = _grid_modules(module)
+    exclude = []
+    for name, g in grids:
+        out.append((f"{prefix}.{name or 'grid'}", g.encode_bits()))
+        exclude.append(f"{name}.grids." if name else "grids.")
+    bounds = [f"{n}.{b}" if n else b for n, _ in grids for b in ("xyz_min", "xyz_max")]
+    round_module_(module, precision, keep=bounds)      # bounds stay float32: they index the grid
+    blob = pack_state_dict(module.state_dict(), precision, exclude=exclude, keep=bounds)
+    out.append((f"{prefix}.weights", blob))
+    return out
+
+
+def _load_module_sections(prefix: str, module: nn.Module, sections: dict) -> None:
+    grids = _grid_modules(module)
+    key = f"{prefix}.weights"
+    if key not in sections:
+        raise BitstreamError(f"missing section '{key}'")
+    sd = unpack_state_dict(sections[key], what=f"section '{key}'")
+    try:
+        missing, unexpected = module.load_state_dict(sd, strict=False)
+    except RuntimeError as e:
+        raise BitstreamError(f"section '{key}' does not fit the model: {e}") from None
+    grid_names = tuple(f"{n}.grids." if n else "grids." for n, _ in grids)
+    missing = [m for m in missing if not m.startswith(grid_names)]
+    if missing or unexpected:
+        raise BitstreamError(f"section '{key}' does not fit the model: missing {missing}, "
+                             f"unexpected {unexpected}")
+    for name, g in grids:
+        sec = f"{prefix}.{name or 'grid'}"
+        if sec not in sections:
+            raise BitstreamError(f"missing section '{sec}'")
+        try:
+            g.decode_bits(sections[sec])
+        except BitstreamError as e:
+            raise BitstreamError(f"section '{sec}': {e}") from None
+        except ValueError as e:
+            raise BitstreamError(f"section '{sec}': {e}") from None
+
+
+@torch.no_grad()
+def encode_model(cfg, model, entropy, path: str | Path, extra_header: Optional[dict] = None) -> dict:
+    """Write ``model`` (+ its entropy model) to ``path``; returns stats incl. per-section bytes.
+
+    Rounds the live networks to the stored precision (in place).
+    """
+    from baseline.config import to_dict
+
+    t0 = time.perf_counter()
+    precision = cfg.codec.weight_dtype
+    K = model.n_offsets
+    valid = model.anchor_valid()
+    idx = valid.nonzero()[:, 0]
+    N = int(len(idx))
+    xyz = model.xyz.detach()[idx]
+    lo, hi = anchor_bounds(xyz.cpu().numpy())
+    q = quantize_positions(xyz.cpu().numpy(), lo, hi)
+    xyz_q = torch.from_numpy(dequantize_positions(q, lo, hi))
+    gmask = (torch.sigmoid(model.per_anchor["mask"].detach()[idx][..., 0]) > model.mask_threshold)
+    sections: list[tuple[str, bytes]] = [("positions", pack_positions(q)),
+                                         ("masks", encode_bernoulli(gmask.numpy().astype(np.uint8)))]
+    em = entropy.serialize(precision)          # rounds the entropy model's weights first
+    sections += [(f"em.{k}", v) for k, v in em.items()]
+    sections += _module_sections("decoder", model.decoder, precision)
+    provider_sections = _module_sections("provider", model.provider, precision)
+    if any(p.numel() for p in model.provider.parameters()) or len(provider_sections) > 1:
+        sections += provider_sections
+    if model.refiner is not None:
+        sections += _module_sections("refiner", model.refiner, precision)
+    values = model.coded_values(idx)
+    blobs, vq = entropy.compress(xyz_q, values, gmask.float(), return_values=True)
+    attrs = model.coded_attributes()
+    sections += [(a.name, blobs[a.name]) for a in attrs]
+    provider_attrs = [a.name for a in attrs if a.name in model.provider.coded_values(idx[:0])]
+    header = {
+        "format": FORMAT,
+        "config": to_dict(cfg),
+        "n_anchors": N,
+        "n_offsets": K,
+        "position_bounds": [lo.tolist(), hi.tolist()],
+        "attrs": [dataclasses.asdict(a) for a in attrs],
+        "provider_attrs": provider_attrs,
+        "entropy": entropy.config(),
+        "weight_dtype": precision,
+    }
+    if extra_header:
+        header.update(extra_header)
+    size = write_container(path, header, sections)
+    return {"bytes": size, "anchors": N, "encode_s": time.perf_counter() - t0,
+            "sections": {n: len(b) for n, b in sections}, "values": vq, "xyz_q": xyz_q,
+            "index": idx}
+
+
+@dataclasses.dataclass
+class DecodedModel:
+    cfg: object
+    model: object
+    header: dict
+    decode_s: float
+
+    @property
+    def scene_path(self) -> Optional[str]:
+        return self.header.get("scene")
+
+
+@torch.no_grad()
+def decode_model(path: str | Path) -> DecodedModel:
+    """Rebuild the model from a ``.pgs`` file alone (BitstreamError names any bad section)."""
+    from baseline import registry
+    from baseline.config import ConfigError, apply_overlay, default_config
+    from baseline.hac.entropy import build_entropy_model
+    from baseline.scaffold.model import AnchorModel
+
+    t0 = time.perf_counter()
+    header, sections = read_container(path)
+    if header.get("format") != FORMAT:
+        raise BitstreamError(f"{path}: header format {header.get('format')!r}, expected {FORMAT!r}")
+    try:
+        N, K = int(header["n_anchors"]), int(header["n_offsets"])
+        lo, hi = (np.asarray(b, dtype=np.float32) for b in header["position_bounds"])
+        cfg_dict = dict(header["config"])
+        ent_cfg = header["entropy"]
+    except (KeyError, TypeError, ValueError) as e:
+        raise BitstreamError(f"{path}: header is missing or has a bad field: {e}") from None
+    cfg = default_config()
+    cfg.patches = list(cfg_dict.pop("patches", []))
+    try:
+        apply_overlay(cfg, cfg_dict, f"the header of {path}")
+    except ConfigError as e:
+        raise BitstreamError(f"{e} (is the plugin that wrote this file installed?)") from None
+    for sec in ("positions", "masks"):
+        if sec not in sections:
+            raise BitstreamError(f"missing section '{sec}'")
+    q = unpack_positions(sections["positions"], N)
+    xyz = torch.from_numpy(dequantize_positions(q, lo, hi))
+    gm = decode_bernoulli(sections["masks"], expected_n=N * K, what="section 'masks'")
+    gmask = torch.from_numpy(np.asarray(gm, dtype=np.float32).reshape(N, K))
+    prov_cls = registry.get("feature_provider", cfg.model.feature_provider)
+    ref_cls = None if cfg.model.refiner in ("", "none") else registry.get("refiner", cfg.model.refiner)
+    model = AnchorModel(xyz, torch.zeros(N, 6), cfg.model,
+                        provider_factory=lambda m: prov_cls(m, cfg),
+                        refiner_factory=(lambda m: ref_cls(m, cfg)) if ref_cls else None,
+                        mask_threshold=cfg.entropy.mask_threshold)
+    entropy = build_entropy_model(ent_cfg)
+    em = {k[3:]: v for k, v in sections.items() if k.startswith("em.")}
+    entropy.load_serialized(em)
+    _load_module_sections("decoder", model.decoder, sections)
+    if any(n.startswith("provider.") for n in sections):
+        _load_module_sections("provider", model.provider, sections)
+    if model.refiner is not None:
+        _load_module_sections("refiner", model.refiner, sections)
+        model.refiner.active = True
+    attrs = [a["name"] for a in header["attrs"]]
+    missing = [a for a in attrs if a not in sections]
+    if missing:
+        raise BitstreamError(f"missing attribute section(s) {missing}")
+    try:
+        values = entropy.decompress(xyz, {a: sections[a] for a in attrs}, gmask, n=N)
+    except BitstreamError as e:
+        raise BitstreamError(f"{e}") from None
+    model.per_anchor["mask"].data = torch.where(gmask > 0, MASK_LOGIT, -MASK_LOGIT)[..., None]
+    model.per_anchor["scaling"].data = torch.log(values["scaling"].clamp_min(1e-30))
+    model.per_anchor["offsets"].data = values["offsets"].view(N, K, 3).clone()
+    model.fixed_values = values
+    if hasattr(model.provider, "build_cache"):
+        model.provider.build_cache(xyz)
+    model.eval()
+    return DecodedModel(cfg=cfg, model=model, header=header, decode_s=time.perf_counter() - t0)
+
+
+def section_group(name: str, header: dict) -> str:
+    """The size group of a section (see the module docstring)."""
+    if name in header.get("provider_attrs", []) or name.startswith("provider."):
+        return "feature"
+    if name == "positions":
+        return "anchor"
+    if name in ("scaling", "offsets", "masks"):
+        return name
+    if name == "em.grid":
+        return "hash"
+    return "mlps"
+
+
+def file_info(path: str | Path) -> dict:
+    """Per-section and per-group allocation read from the file itself."""
+    from baseline.codec.container import container_summary
+
+    raw = Path(path).read_bytes()
+    header, sections = read_container(raw)
+    rows = [{"section": n, "bytes": len(b), "group": section_group(n, header)}
+            for n, b in sections.items()]
+    total = len(raw)
+    groups: dict[str, int] = {}
+    for r in rows:
+        groups[r["group"]] = groups.get(r["group"], 0) + r["bytes"]
+    groups["header+framing"] = total - sum(r["bytes"] for r in rows)
+    return {"total_bytes": total, "sections": rows, "groups": groups, "n_anchors": header.get("n_anchors"),
+            "header": {k: header[k] for k in ("n_anchors", "n_offsets", "weight_dtype") if k in header}}
+
+
+def format_info(info: dict) -> str:
+    mb = 2 ** 20
+    lines = [f"{'section':<22}{'group':<16}{'bytes':>12}{'MB':>10}{'share':>8}"]
+    tot = info["total_bytes"]
+    for r in info["sections"]:
+        lines.append(f"{r['section']:<22}{r['group']:<16}{r['bytes']:>12}{r['bytes'] / mb:>10.4f}"
+                     f"{100 * r['bytes'] / tot:>7.1f}%")
+    lines.append("")
+    lines.append(f"{'group':<38}{'bytes':>12}{'MB':>10}{'share':>8}")
+    for g, b in sorted(info["groups"].items(), key=lambda kv: -kv[1]):
+        lines.append(f"{g:<38}{b:>12}{b / mb:>10.4f}{100 * b / tot:>7.1f}%")
+    lines.append(f"{'total (file size)':<38}{tot:>12}{tot / mb:>10.4f}")
+    return "\n".join(lines)

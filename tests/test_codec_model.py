@@ -1,0 +1,132 @@
+"""Whole-model codec: train briefly into the adaptive phase, encode, decode, compare exactly."""
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from baseline.codec.container import BitstreamError, read_container
+from baseline.codec.model_codec import decode_model, encode_model, file_info
+from baseline.config import build_config
+from baseline.data.scene import load_scene
+from baseline.data.synthetic import make_scene
+from baseline.eval.evaluate import evaluate
+from baseline.pipeline import quantized_positions
+from baseline.train.trainer import Trainer
+
+ITERS = 300
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    d = tmp_path_factory.mktemp("codec_scene")
+    make_scene(d / "scene", n_views=12, width=64, height=48, seed=2)
+    return load_scene(d / "scene")
+
+
+def _trained(scene, out, patches=()):
+    cfg = build_config(["demo", *patches], [f"train.iterations={ITERS}", "train.threads=1",
+                                            "train.log_every=1000"])
+    t = Trainer(cfg, scene, out, progress=False)
+    t.train()
+    assert t.phase == "adaptive"
+    return t
+
+
+@pytest.fixture(scope="module", params=["baseline", "predict-gs"])
+def encoded(request, scene, tmp_path_factory):
+    d = tmp_path_factory.mktemp(f"codec_{request.param}")
+    patches = () if request.param == "baseline" else ("predict-gs",)
+    t = _trained(scene, d / "run", patches)
+    xyz_q_all = quantized_positions(t.model.xyz)
+    pre = evaluate(t.model, scene, scene.test_cameras, phase="adaptive", entropy=t.entropy,
+                   backend="cpu", quantized_xyz=xyz_q_all, render_dir=d / "pre")
+    st = encode_model(t.cfg, t.model, t.entropy, d / "m.pgs", extra_header={"scene": "x"})
+    # after encoding the weights are at stored precision: render again (what the file holds)
+    pre_rounded = evaluate(t.model, scene, scene.test_cameras, phase="adaptive", entropy=t.entropy,
+                           backend="cpu", quantized_xyz=xyz_q_all)
+    return dict(trainer=t, stats=st, path=d / "m.pgs", pre=pre, pre_rounded=pre_rounded, dir=d)
+
+
+def test_decoded_attributes_bit_identical(encoded):
+    dec = decode_model(encoded["path"])
+    vq = encoded["stats"]["values"]
+    assert set(vq) == set(dec.model.fixed_values)
+    for k, v in vq.items():
+        assert torch.equal(v, dec.model.fixed_values[k]), k
+    assert torch.equal(dec.model.xyz, encoded["stats"]["xyz_q"])
+
+
+def test_decoded_render_matches_pre_encode(encoded, scene):
+    dec = decode_model(encoded["path"])
+    post = evaluate(dec.model, scene, scene.test_cameras, phase="decoded", backend="cpu")
+    assert abs(post["psnr"] - encoded["pre_rounded"]["psnr"]) < 0.01
+    assert abs(post["psnr"] - encoded["pre"]["psnr"]) < 0.01     # float32 weights: no change
+
+
+def test_decode_with_other_thread_count(encoded, tmp_path):
+    out = tmp_path / "vals.pt"
+    code = ("import torch, sys; torch.set_num_threads(2);"
+            "from baseline import registry; registry.ensure_loaded();"
+            "from baseline.codec.model_codec import decode_model;"
+            f"d = decode_model(r'{encoded['path']}');"
+            f"torch.save(d.model.fixed_values, r'{out}')")
+    torch.set_num_threads(1)
+    subprocess.run([sys.executable, "-c", code], check=True)
+    other = torch.load(out)
+    for k, v in encoded["stats"]["values"].items():
+        assert torch.equal(v, other[k]), k
+
+
+def test_estimated_bits_close_to_written(encoded):
+    t = encoded["trainer"]
+    idx = encoded["stats"]["index"]
+    xyz_q = encoded["stats"]["xyz_q"]
+    gm = (torch.sigmoid(t.model.per_anchor["mask"].detach()[idx][..., 0]) > 0.01).float()
+    est = t.entropy.estimate_bits(xyz_q, t.model.coded_values(idx), gm)
+    secs = encoded["stats"]["sections"]
+    for name, bits in est.items():
+        written = secs[name] * 8
+        print(name, bits, written)
+        assert abs(written - bits) <= 0.05 * written + 64 * 8, (name, bits, written)
+
+
+def test_info_groups_sum_to_file_size(encoded):
+    info = file_info(encoded["path"])
+    assert sum(info["groups"].values()) == info["total_bytes"] == encoded["path"].stat().st_size
+    assert "feature" in info["groups"] and "hash" in info["groups"]
+    names = [r["section"] for r in info["sections"]]
+    if encoded["trainer"].cfg.model.feature_provider == "sfp":
+        assert "residual" in names and "provider.grid" in names and "feat" not in names
+    else:
+        assert "feat" in names and "provider.grid" not in names
+
+
+def _sections(path):
+    header, secs = read_container(path.read_bytes())
+    return header, secs
+
+
+def test_truncated_and_flipped_files_name_the_section(encoded, tmp_path):
+    raw = encoded["path"].read_bytes()
+    _, secs = _sections(encoded["path"])
+    # truncation at several points
+    for cut in (0, 3, 10, len(raw) // 3, len(raw) - 1):
+        p = tmp_path / f"t{cut}.pgs"
+        p.write_bytes(raw[:cut])
+        with pytest.raises(BitstreamError):
+            decode_model(p)
+    # one flipped byte inside each section: the CRC names it
+    offset = len(raw) - sum(len(b) for b in secs.values())
+    for name, blob in secs.items():
+        if len(blob) == 0:
+            continue
+        bad = bytearray(raw)
+        bad[offset + len(blob) // 2] ^= 0x5A
+        p = tmp_path / f"flip_{name}.pgs"
+        p.write_bytes(bytes(bad))
+        with pytest.raises(BitstreamError, match=name.replace(".", r"\.")):
+            decode_model(p)
+        offset += len(blob)
