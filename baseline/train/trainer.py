@@ -138,7 +138,7 @@ class Trainer:
             if res.n_rate_anchors > 0:
                 bits = sum(b.sum() for b in res.bits.values())
                 rate = bits / (res.n_rate_anchors * dims)
-                terms["bpp"] = float(rate)
+                terms["bpp"] = float(rate.detach())
             hb = self.entropy.hash_bits()
             if hasattr(self.model.provider, "rate_bits"):   # e.g. Predict-GS's SFP grid
                 hb = hb + self.model.provider.rate_bits()
@@ -216,6 +216,7 @@ class Trainer:
 
     def save_checkpoint(self, path: Optional[Path] = None) -> Path:
         path = Path(path) if path else self.out / CHECKPOINT_NAME
+        path.parent.mkdir(parents=True, exist_ok=True)
         tmp = path.with_suffix(".tmp")
         torch.save(self.state_dict(), tmp)
         os.replace(tmp, path)
