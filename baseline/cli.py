@@ -139,6 +139,13 @@ def cmd_decode(args) -> int:
         res[args.render] = r.evaluate(args.render, render_dir=out / "renders" / args.render)
         t = res[args.render]
         print(f"{args.render}: PSNR {t['psnr']:.3f} dB  SSIM {t['ssim']:.4f}  FPS {t['fps']:.1f}")
+        prov = r.model.provider
+        if hasattr(prov, "clear_cache"):     # Predict-GS: FPS without the decoded-model f_c cache
+            prov.clear_cache()
+            nc = r.evaluate(args.render)
+            prov.build_cache(r.model.xyz)
+            t["fps_no_cache"] = nc["fps"]
+            print(f"FPS without the f_c cache {nc['fps']:.1f} (with {t['fps']:.1f})")
         from baseline.eval.export import export_run_ply
 
         export_run_ply(r.model, r.scene.train_cameras, out / "point_cloud.ply")
