@@ -71,7 +71,7 @@ def test_bad_curves_are_refused():
         bd_rate([1, 2, 3], [20, 21, 22], [1, 2, 3], [30, 31, 32])
     with pytest.raises(BDError, match="at least 2"):
         bd_psnr([1], [30], [1, 2], [30, 31])
-    with pytest.raises(BDError, match="repeated"):
+    with pytest.raises(BDError, match="same abscissa"):
         bd_rate([1, 2, 3], [30, 30, 31], [1, 2, 3], [30, 31, 32])
     with pytest.raises(BDError, match="positive"):
         bd_psnr([0, 2, 3], [30, 31, 32], [1, 2, 3], [30, 31, 32])

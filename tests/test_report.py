@@ -115,3 +115,14 @@ def test_report_with_single_points_and_lpips(tmp_path):
     assert "0.2500" in txt and "needs >= 3 rate points" in txt
     write_report(res, tmp_path)
     assert (tmp_path / "bits.png").exists()
+
+
+def test_bd_psnr_kept_when_only_bd_rate_is_impossible():
+    res = stored_results()
+    # contender PSNRs all above the baseline's (no PSNR overlap) but the same sizes (log-rate overlap)
+    for r in res["runs"]:
+        if r["method"] == "entropy-factorized":
+            r["psnr"] += 5.0
+    bd = {b["method"]: b for b in compute_bd(res)}["entropy-factorized"]
+    assert bd["bd_rate"] is None and "BD-rate" in bd["note"] and "overlap" in bd["note"]
+    assert bd["bd_psnr"] == pytest.approx(4.5, abs=1e-9)

@@ -40,18 +40,19 @@ def _curve(x, y, what: str) -> PchipInterpolator:
     order = np.argsort(x, kind="stable")
     x, y = x[order], y[order]
     if np.any(np.diff(x) <= 0):
-        raise BDError(f"{what}: repeated abscissa {x.tolist()}: the curve is not a function")
+        raise BDError(f"{what}: two points at the same abscissa {x.tolist()}")
     return PchipInterpolator(x, y, extrapolate=False)
 
 
-def _mean_difference(xa, ya, xb, yb, what: str) -> float:
+def _mean_difference(xa, ya, xb, yb, what: str, axis: str, show=lambda v: v) -> float:
+    """Mean of (B - A) over the overlap of the abscissa ranges; ``show`` maps x for messages."""
     fa = _curve(xa, ya, f"{what} (baseline)")
     fb = _curve(xb, yb, f"{what} (contender)")
     lo = max(fa.x[0], fb.x[0])
     hi = min(fa.x[-1], fb.x[-1])
     if not hi > lo:
-        raise BDError(f"{what}: the curves do not overlap (baseline {fa.x[0]:.4g}..{fa.x[-1]:.4g}, "
-                      f"contender {fb.x[0]:.4g}..{fb.x[-1]:.4g})")
+        raise BDError(f"{what}: no {axis} overlap (baseline {show(fa.x[0]):.4g}-{show(fa.x[-1]):.4g}, "
+                      f"contender {show(fb.x[0]):.4g}-{show(fb.x[-1]):.4g})")
     return float((fb.integrate(lo, hi) - fa.integrate(lo, hi)) / (hi - lo))
 
 
@@ -65,11 +66,12 @@ def _log_rate(rate, what: str) -> np.ndarray:
 def bd_rate(rate_a, psnr_a, rate_b, psnr_b) -> float:
     """BD-rate of B against A in percent (negative: B saves bits at equal PSNR)."""
     la, lb = _log_rate(rate_a, "BD-rate baseline"), _log_rate(rate_b, "BD-rate contender")
-    d = _mean_difference(psnr_a, la, psnr_b, lb, "BD-rate")
+    d = _mean_difference(psnr_a, la, psnr_b, lb, "BD-rate", "PSNR")
     return float((10.0 ** d - 1.0) * 100.0)
 
 
 def bd_psnr(rate_a, psnr_a, rate_b, psnr_b) -> float:
     """BD-PSNR of B against A in dB (positive: B has higher PSNR at equal rate)."""
     la, lb = _log_rate(rate_a, "BD-PSNR baseline"), _log_rate(rate_b, "BD-PSNR contender")
-    return _mean_difference(la, psnr_a, lb, psnr_b, "BD-PSNR")
+    return _mean_difference(la, psnr_a, lb, psnr_b, "BD-PSNR", "rate",
+                            show=lambda v: 10.0 ** v)

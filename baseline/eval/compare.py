@@ -259,6 +259,21 @@ def make_row(spec: RunSpec, res: dict, record: dict) -> dict:
 
 
 # ------------------------------------------------------------------------------ the command
+def _warm_up_rasterizer(specs: list[RunSpec]) -> None:
+    """Compile / load the CPU rasterizer kernels before anything is timed.
+
+    Otherwise the first run of the process pays it inside its training (and FPS) timings and
+    the methods' times are not comparable.
+    """
+    if not any(s.cfg.train.rasterizer in ("cpu", "auto") for s in specs):
+        return
+    try:
+        from baseline.render.cpu import kernels
+    except ImportError:        # no numba: the reference backend is used, nothing to warm up
+        return
+    kernels()
+
+
 def run_compare(scene: str | Path, out: str | Path, vs: list[str] = (),
                 lambdas: Optional[list[float]] = None, common_patches: list[str] = (),
                 sets: list[str] = (), lpips_weights: Optional[str] = None,
@@ -296,6 +311,8 @@ def run_compare(scene: str | Path, out: str | Path, vs: list[str] = (),
     if echo:
         print(f"compare: {len(methods)} method(s) x {len(specs) // len(methods)} rate point(s) = "
               f"{len(specs)} run(s) on {scene_path}; {n_done} already finished in {out / 'runs'}")
+    if n_done < len(specs):
+        _warm_up_rasterizer(specs)
     t0 = time.perf_counter()
     bar = tqdm(total=len(specs), desc="compare", unit="run", disable=not progress,
                dynamic_ncols=True, position=0)

@@ -54,8 +54,12 @@ def plot_rd(results: dict, path: Path) -> Path:
         c, mk = style[m]
         ax.plot([r["mb"] for r in rs], [r["psnr"] for r in rs], marker=mk, color=c, lw=1.8, ms=7,
                 label=m)
+        spots: dict = {}          # points that coincide on the plot share one label
         for r in rs:
-            ax.annotate(f"λ={r['lmbda']:g}", (r["mb"], r["psnr"]), textcoords="offset points",
+            key = (f"{r['mb']:.3g}", f"{r['psnr']:.2f}")
+            spots.setdefault(key, (r["mb"], r["psnr"], []))[2].append(f"{r['lmbda']:g}")
+        for x, y, lams in spots.values():
+            ax.annotate("λ=" + ", ".join(lams), (x, y), textcoords="offset points",
                         xytext=(5, -11), fontsize=7.5, color=c)
     ax.set_xlabel("size of the .pgs file (MB = 2^20 bytes)")
     ax.set_ylabel("PSNR on the test views (dB)")

@@ -88,11 +88,13 @@ def compute_bd(results: dict) -> list[dict]:
         else:
             args = ([b["mb"] for b in base], [b["psnr"] for b in base],
                     [r["mb"] for r in rs], [r["psnr"] for r in rs])
-            try:
-                item["bd_rate"] = bd_rate(*args)
-                item["bd_psnr"] = bd_psnr(*args)
-            except BDError as e:
-                item["note"] = str(e)
+            notes = []
+            for key, fn in (("bd_rate", bd_rate), ("bd_psnr", bd_psnr)):
+                try:
+                    item[key] = fn(*args)
+                except BDError as e:      # each measure needs its own overlap: keep the other
+                    notes.append(str(e))
+            item["note"] = "; ".join(notes)
         out.append(item)
     return out
 
@@ -254,14 +256,21 @@ def speed_table(results: dict) -> Table:
 
 def bd_table(results: dict) -> Table:
     bd = results.get("bd") or compute_bd(results)
-    rows = [[b["method"], f"{b['points']} vs {b['baseline_points']}",
-             "-" if b["bd_rate"] is None else f"{b['bd_rate']:+.2f}",
-             "-" if b["bd_psnr"] is None else f"{b['bd_psnr']:+.3f}", b["note"] or ""] for b in bd]
+    rows, foot = [], []
+    for b in bd:
+        mark = ""
+        if b["note"]:
+            foot.append(f"({len(foot) + 1}) {b['method']}: {b['note']}")
+            mark = f"({len(foot)})"
+        rows.append([b["method"], f"{b['points']} vs {b['baseline_points']}",
+                     "-" if b["bd_rate"] is None else f"{b['bd_rate']:+.2f}",
+                     "-" if b["bd_psnr"] is None else f"{b['bd_psnr']:+.3f}", mark])
     return Table(f"Bjontegaard deltas against {results.get('baseline', 'baseline')}",
                  ["method", "points", "BD-rate (%)", "BD-PSNR (dB)", "note"], rows,
-                 ["Piecewise cubic (PCHIP) interpolation of log10(size) vs PSNR (BD-rate) and PSNR "
-                  "vs log10(size) (BD-PSNR), integrated over the overlapping interval. Negative "
-                  "BD-rate = fewer bytes at equal PSNR."], left=1)
+                 foot + ["Piecewise cubic (PCHIP) interpolation of log10(size) vs PSNR (BD-rate) "
+                         "and PSNR vs log10(size) (BD-PSNR), integrated over the overlapping "
+                         "interval; size = file MB. Negative BD-rate = fewer bytes at equal PSNR."],
+                 left=1)
 
 
 def protocol_lines(results: dict) -> list[tuple[str, str]]:
