@@ -201,9 +201,14 @@ def cmd_compare(args) -> int:
         sets.append(f'data.images="{args.images}"')
     if args.iterations:
         sets.append(f"train.iterations={args.iterations}")
-    run_compare(args.scene, args.out, vs=args.vs, lambdas=args.lambdas,
-                common_patches=args.patch, sets=sets, lpips_weights=args.lpips_weights,
-                progress=not args.no_progress, plots=not args.no_plots)
+    try:
+        run_compare(args.scene, args.out, vs=args.vs, lambdas=args.lambdas,
+                    common_patches=args.patch, sets=sets, lpips_weights=args.lpips_weights,
+                    progress=not args.no_progress, plots=not args.no_plots)
+    except KeyboardInterrupt:
+        print(f"\ninterrupted: finished stages are kept in {args.out}; run the same command "
+              f"again to resume", file=sys.stderr)
+        return 130
     return 0
 
 

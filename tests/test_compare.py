@@ -157,3 +157,32 @@ def test_compare_refuses_other_scene(scene, tmp_path):
     (spec.dir / "scene.json").write_text(json.dumps({"path": str(Path(other).resolve())}))
     with pytest.raises(ValueError, match="another --out"):
         run_compare(scene, out, common_patches=["demo"], sets=SETS, progress=False, echo=False)
+
+
+def test_lpips_weights_redo_only_the_decoded_stage(scene, tmp_path, monkeypatch):
+    """Weights given on a rerun: only decode + evaluate run again, and LPIPS appears."""
+    from baseline.eval.metrics import LPIPS
+
+    out = tmp_path / "cmp"
+    run_compare(scene, out, vs=["entropy-factorized"], common_patches=["demo"], sets=SETS,
+                progress=False, plots=False, echo=False)
+    spec = plan_runs(out, parse_methods(["entropy-factorized"]), None, ["demo"], SETS)[1]
+    before = _mtimes(spec.dir)
+    enc_before = json.loads((spec.dir / RECORD).read_text())["encode"]
+    torch.manual_seed(0)
+    net = LPIPS()        # random weights: this tests the plumbing, not the metric's values
+    for lin in net.lins:
+        lin.weight.data.abs_()                       # LPIPS heads are non-negative
+    w = tmp_path / "lpips.pth"
+    torch.save({k: v for k, v in net.state_dict().items() if k not in ("shift", "scale")}, w)
+    calls = []
+    monkeypatch.setattr(run_mod, "train_run", lambda *a, **k: calls.append(a) or {})
+    res = run_compare(scene, out, vs=["entropy-factorized"], common_patches=["demo"], sets=SETS,
+                      lpips_weights=str(w), progress=False, plots=False, echo=False)
+    assert calls == []
+    assert all(r["stages_run"] == ["decode+eval"] for r in res["runs"])
+    assert all(r["lpips"] is not None and r["lpips"] >= 0 for r in res["runs"])
+    assert json.loads((spec.dir / RECORD).read_text())["encode"] == enc_before
+    after = _mtimes(spec.dir)
+    assert after[MODEL_FILE] == before[MODEL_FILE] and after[CHECKPOINT_NAME] == before[CHECKPOINT_NAME]
+    assert "VGG16 LPIPS with weights" in (out / "report.md").read_text()

@@ -127,16 +127,25 @@ def _encoded(spec: RunSpec, record: dict) -> bool:
         and record.get("config_hash") == spec.hash
 
 
-def _evaluated(record: dict, want_lpips: bool) -> bool:
+def lpips_id(weights: Optional[str]) -> Optional[str]:
+    """Which LPIPS weights a measurement used: resolved path and byte count (None: no LPIPS)."""
+    if weights is None:
+        return None
+    p = Path(weights).expanduser().resolve()
+    return f"{p} ({p.stat().st_size} bytes)" if p.is_file() else None
+
+
+def _evaluated(record: dict, lpips: Optional[str]) -> bool:
+    """Decoded measurements done for this file (and with these LPIPS weights, if any now)."""
     dec = record.get("decoded")
     if not dec or record.get("encode", {}).get("bytes") != dec.get("bytes"):
         return False
-    return not (want_lpips and dec.get("lpips") is None)
+    return lpips is None or (dec.get("lpips") is not None and dec.get("lpips_weights") == lpips)
 
 
-def is_finished(spec: RunSpec, want_lpips: bool = False) -> bool:
+def is_finished(spec: RunSpec, lpips: Optional[str] = None) -> bool:
     record = _read_json(spec.dir / RECORD)
-    return _trained(spec) is not None and _encoded(spec, record) and _evaluated(record, want_lpips)
+    return _trained(spec) is not None and _encoded(spec, record) and _evaluated(record, lpips)
 
 
 def _check_scene(spec: RunSpec, scene_path: str) -> None:
@@ -170,7 +179,8 @@ def _stage_encode(spec: RunSpec, scene_path: str, record: dict) -> None:
     _write_record(spec, record)
 
 
-def _stage_decoded(spec: RunSpec, scene_path: str, record: dict, lpips_fn) -> None:
+def _stage_decoded(spec: RunSpec, scene_path: str, record: dict, lpips_fn,
+                   lpips: Optional[str]) -> None:
     from baseline.codec.model_codec import decode_model
     from baseline.eval.evaluate import evaluate
     from baseline.run import load_scene_for
@@ -184,6 +194,7 @@ def _stage_decoded(spec: RunSpec, scene_path: str, record: dict, lpips_fn) -> No
                   render_dir=spec.dir / "renders" / "decoded", lpips_fn=lpips_fn)
     out = {"bytes": pgs.stat().st_size, "decode_s": dec.decode_s, "psnr": ev["psnr"],
            "ssim": ev["ssim"], "lpips": ev["lpips"], "fps": ev["fps"], "n_views": ev["n_views"],
+           "lpips_weights": lpips if lpips_fn is not None else None,
            "gaussians_mean": ev["gaussians_mean"], "anchors": ev["anchors"],
            "split": "test" if scene.test_cameras else "train (no test views)",
            "backend": backend, "has_cache": False, "fps_nocache": None, "psnr_nocache": None}
@@ -197,8 +208,8 @@ def _stage_decoded(spec: RunSpec, scene_path: str, record: dict, lpips_fn) -> No
     _write_record(spec, record)
 
 
-def run_one(spec: RunSpec, scene_path: str, lpips_fn=None, progress: bool = True,
-            on_stage: Optional[Callable[[str], None]] = None) -> dict:
+def run_one(spec: RunSpec, scene_path: str, lpips_fn=None, lpips: Optional[str] = None,
+            progress: bool = True, on_stage: Optional[Callable[[str], None]] = None) -> dict:
     """Bring one run to the finished state (skipping stages already done); return its row."""
     from baseline.run import train_run
     from baseline.train.trainer import set_threads
@@ -222,9 +233,9 @@ def run_one(spec: RunSpec, scene_path: str, lpips_fn=None, progress: bool = True
         stage("encode")
         _stage_encode(spec, scene_path, record)
         done.append("encode")
-    if not _evaluated(record, lpips_fn is not None):
+    if not _evaluated(record, lpips if lpips_fn is not None else None):
         stage("decode+eval")
-        _stage_decoded(spec, scene_path, record, lpips_fn)
+        _stage_decoded(spec, scene_path, record, lpips_fn, lpips)
         done.append("decode+eval")
     row = make_row(spec, res, record)
     row["stages_run"] = done
@@ -242,6 +253,7 @@ def make_row(spec: RunSpec, res: dict, record: dict) -> dict:
         "run_dir": str(spec.dir),
         "config_hash": spec.hash,
         "psnr": dec["psnr"], "ssim": dec["ssim"], "lpips": dec["lpips"],
+        "lpips_weights": dec.get("lpips_weights"),
         "bytes": dec["bytes"], "mb": dec["bytes"] / MB,
         "sections": enc["sections"], "groups": enc["groups"],
         "iterations": res["iterations"], "train_time_s": res["train_time_s"],
@@ -292,6 +304,7 @@ def run_compare(scene: str | Path, out: str | Path, vs: list[str] = (),
         raise ValueError(f"--lambda lists a value twice: {lambdas}")
     specs = plan_runs(out, methods, lambdas, list(common_patches), list(sets))
     lpips_fn, lpips_reason = load_lpips(lpips_weights)
+    lp_id = lpips_id(lpips_weights) if lpips_fn is not None else None
     out.mkdir(parents=True, exist_ok=True)
 
     results = {
@@ -302,12 +315,12 @@ def run_compare(scene: str | Path, out: str | Path, vs: list[str] = (),
         "common_patches": list(common_patches),
         "sets": list(sets),
         "lambdas": None if lambdas is None else [float(x) for x in lambdas],
-        "lpips": "measured" if lpips_fn is not None else lpips_reason,
+        "lpips": f"measured with {lp_id}" if lpips_fn is not None else lpips_reason,
         "versions": versions(),
         "complete": False,
         "runs": [],
     }
-    n_done = sum(is_finished(s, lpips_fn is not None) for s in specs)
+    n_done = sum(is_finished(s, lp_id) for s in specs)
     if echo:
         print(f"compare: {len(methods)} method(s) x {len(specs) // len(methods)} rate point(s) = "
               f"{len(specs)} run(s) on {scene_path}; {n_done} already finished in {out / 'runs'}")
@@ -325,7 +338,7 @@ def run_compare(scene: str | Path, out: str | Path, vs: list[str] = (),
             if echo:
                 tqdm.write(f"{head}: {s} ({spec.dir})")
 
-        row = run_one(spec, scene_path, lpips_fn, progress=progress, on_stage=on_stage)
+        row = run_one(spec, scene_path, lpips_fn, lp_id, progress=progress, on_stage=on_stage)
         results["runs"].append(row)
         write_json_atomic(out / "results.json", results)       # partial results survive
         if echo:

@@ -163,22 +163,34 @@ class Table:
         return "\n".join(out)
 
 
+def _lpips_note(results: dict) -> str:
+    runs = results["runs"]
+    ids = sorted({str(r.get("lpips_weights")) for r in runs if r["lpips"] is not None})
+    if not ids:
+        return str(results.get("lpips") or "LPIPS unavailable: pass --lpips-weights PATH")
+    note = "LPIPS: VGG16 LPIPS with weights " + "; ".join(ids)
+    if any(r["lpips"] is None for r in runs):
+        note += " ('unavailable' rows: pass --lpips-weights PATH)"
+    return note
+
+
 def quality_table(results: dict) -> Table:
     rows = []
     for r in ordered_runs(results):
         p = baseline_partner(results, r)
-        rows.append([r["method"], _lam(r), _f(r["psnr"], 3), _f(r["ssim"], 4),
+        rows.append([r["method"], _lam(r), _f(r["psnr"], 3),
+                     _f((r.get("pre_encode") or {}).get("psnr"), 3), _f(r["ssim"], 4),
                      "unavailable" if r["lpips"] is None else _f(r["lpips"], 4),
                      _f(r["mb"], 4),
                      "ref" if _is_base(results, r) else _pct(_change(r["bytes"], p and p["bytes"])),
                      str(r["anchors"])])
-    notes = ["Decoded .pgs file on the test views; metrics on uint8 images. "
-             "MB = file bytes / 2^20; size change vs the baseline at the same rate point.",
-             "LPIPS: measured (VGG16 weights from --lpips-weights)." if results.get("lpips") ==
-             "measured" else str(results.get("lpips", "LPIPS unavailable"))]
+    notes = ["Decoded .pgs file on the test views; metrics on uint8 images. 'pre-encode': PSNR "
+             "of the trained model before coding. MB = file bytes / 2^20; size change vs the "
+             "baseline at the same rate point.",
+             _lpips_note(results)]
     return Table("Quality and size (decoded file)",
-                 ["method", "lambda", "PSNR (dB)", "SSIM", "LPIPS", "size (MB)", "vs baseline",
-                  "anchors"], rows, notes, left=2)
+                 ["method", "lambda", "PSNR (dB)", "pre-encode", "SSIM", "LPIPS", "size (MB)",
+                  "vs baseline", "anchors"], rows, notes, left=2)
 
 
 def groups_table(results: dict) -> Table:
