@@ -224,8 +224,8 @@ def run_one(spec: RunSpec, scene_path: str, lpips_fn=None, lpips: Optional[str] 
                         evaluate_after=True)
         done.append("train")
     record = _read_json(spec.dir / RECORD)
-    if record.get("config_hash") != spec.hash:
-        record = {}
+    if record.get("config_hash") != spec.hash or done:
+        record = {}                      # (re)trained now: an older file no longer applies
     record.update(method=spec.method.name, method_patches=list(spec.method.patches),
                   lmbda=spec.lmbda, config_hash=spec.hash, scene=scene_path)
     set_threads(spec.cfg.train.threads)

@@ -259,7 +259,8 @@ def speed_table(results: dict) -> Table:
              "every timing is one measurement on the machine as it was loaded at the time."]
     if any_cache:
         notes.append("FPS with the decoded-model cache (per-anchor predicted features computed once "
-                     "at decode) in 'FPS'; 'FPS w/o cache' recomputes them every view. "
+                     "at decode, inside the decode time) in 'FPS'; 'FPS w/o cache' recomputes "
+                     "them every view. "
                      "'(no cache)': the model has none, its one FPS is in 'FPS'.")
     return Table("Speed against error", ["method", "lambda", "PSNR (dB)", "size (MB)", "train (s)",
                                          "s/it", "encode (s)", "decode (s)", "FPS",
