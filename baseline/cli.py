@@ -197,6 +197,28 @@ def cmd_bench(args) -> int:
     return 0
 
 
+def cmd_compare(args) -> int:
+    """Side by side: the baseline and each --vs method at each lambda; report + plots."""
+    from baseline.eval.compare import run_compare
+
+    sets = list(args.set)
+    if args.resolution is not None:
+        sets.append(f"data.resolution={args.resolution}")
+    if args.images:
+        sets.append(f'data.images="{args.images}"')
+    if args.iterations:
+        sets.append(f"train.iterations={args.iterations}")
+    try:
+        run_compare(args.scene, args.out, vs=args.vs, lambdas=args.lambdas,
+                    common_patches=args.patch, sets=sets, lpips_weights=args.lpips_weights,
+                    progress=not args.no_progress, plots=not args.no_plots)
+    except KeyboardInterrupt:
+        print(f"\ninterrupted: finished stages are kept in {args.out}; run the same command "
+              f"again to resume", file=sys.stderr)
+        return 130
+    return 0
+
+
 def cmd_demo(args) -> int:
     """The main job on the embedded default scene (until `compare` lands: train + evaluate)."""
     from baseline.config import build_config
@@ -280,6 +302,21 @@ def main(argv=None) -> int:
     p.add_argument("--threads", type=int, default=None)
     p.add_argument("--anchors", type=int, default=500_000)
     p.set_defaults(fn=cmd_bench)
+
+    p = sub.add_parser("compare", help="train/encode/decode methods side by side: tables, BD-rate, plots")
+    p.add_argument("scene")
+    p.add_argument("--vs", action="append", default=[], metavar="P1[+P2...]",
+                   help="a contender: patches joined by '+' on top of the common ones; repeat")
+    p.add_argument("--lambda", dest="lambdas", type=float, nargs="+", action="extend",
+                   default=None, metavar="L", help="rate points (entropy.lmbda); default: the "
+                   "config's own; >= 3 give BD-rate / BD-PSNR")
+    p.add_argument("--out", default="runs/compare", help="comparison folder (runs/, report.md, "
+                   "results.json, plots); rerun to resume")
+    p.add_argument("--lpips-weights", default=None, help="LPIPS weights file (else unavailable)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    p.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
+    _config_args(p)
+    p.set_defaults(fn=cmd_compare)
 
     p = sub.add_parser("demo", help="the main job on the embedded default scene")
     p.add_argument("--out", default="runs/demo")

@@ -1,0 +1,359 @@
+"""``pgs compare``: train, encode, decode and measure several methods on one scene, side by side.
+
+A *method* is a set of patches on top of the common ones (``--patch``): the baseline is the
+plain configuration (Scaffold-GS + HAC unless a common patch says otherwise); each ``--vs
+P1+P2`` adds one contender. Every (method, lambda) pair is one *run*, in its own folder
+``DIR/runs/<method>-l<lambda>-<config hash>``; the hash covers the whole merged config, so a
+changed setting never reuses a stale run.
+
+A run goes through three stages, each recorded as soon as it is done, so an interrupted
+comparison picks up where it stopped:
+
+1. **train** -- ``baseline.run.train_run(resume=True)``: a run interrupted mid-training continues
+   from its checkpoint; done when ``results.json`` holds the test metrics at the configured
+   iteration count.
+2. **encode** -- ``encode_model`` to ``model.pgs`` (written atomically); done when
+   ``compare.json`` records the encode and the file on disk has the recorded byte count.
+3. **decoded** -- ``decode_model`` the file alone and evaluate the *decoded* model on the test
+   views (PSNR / SSIM / LPIPS on uint8 images, FPS); models whose feature provider keeps a
+   decoded-model cache (``build_cache`` / ``clear_cache``, Predict-GS's SFP) are timed with and
+   without it. Done when ``compare.json`` holds these (with LPIPS if weights are given now).
+
+Every number in the report is measured in one of these stages or read from their records.
+"""
+from __future__ import annotations
+
+import json
+import re
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Optional
+
+from tqdm import tqdm
+
+from baseline.config import Config, build_config, config_hash
+
+BASELINE = "baseline"
+RECORD = "compare.json"
+MODEL_FILE = "model.pgs"
+RESULTS_FORMAT = "pgs-compare/1"
+MB = 2 ** 20
+
+
+@dataclass(frozen=True)
+class Method:
+    name: str                   # "baseline" or the contender's patches joined by "+"
+    patches: tuple[str, ...]    # on top of the common patches
+
+
+@dataclass
+class RunSpec:
+    method: Method
+    lmbda: float
+    cfg: Config
+    hash: str
+    dir: Path
+
+    @property
+    def label(self) -> str:
+        return f"{self.method.name} lambda={self.lmbda:g}"
+
+
+def parse_methods(vs: list[str]) -> list[Method]:
+    """``["predict-gs", "predict-gs+entropy-factorized"]`` -> baseline + one Method each."""
+    methods = [Method(BASELINE, ())]
+    seen = {BASELINE}
+    for v in vs:
+        parts = tuple(p.strip() for p in v.split("+") if p.strip())
+        if not parts:
+            raise ValueError(f"--vs '{v}': expected one or more patch names joined by '+'")
+        name = "+".join(Path(p).stem if p.endswith(".toml") else p for p in parts)
+        if name in seen:
+            raise ValueError(f"--vs '{v}': method '{name}' is listed twice")
+        seen.add(name)
+        methods.append(Method(name, parts))
+    return methods
+
+
+def _safe(name: str) -> str:
+    return re.sub(r"[^A-Za-z0-9_.+-]", "_", name)
+
+
+def plan_runs(out: str | Path, methods: list[Method], lambdas: Optional[list[float]],
+              common_patches: list[str] = (), sets: list[str] = ()) -> list[RunSpec]:
+    """Build every run's config up front (bad patches / keys fail before any training).
+
+    With ``lambdas`` None each method runs once at its config's own ``entropy.lmbda``.
+    """
+    out = Path(out)
+    specs = []
+    for m in methods:
+        patches = list(common_patches) + list(m.patches)
+        if lambdas:
+            cfgs = [(float(lm), build_config(patches, list(sets) + [f"entropy.lmbda={float(lm)!r}"]))
+                    for lm in lambdas]
+        else:
+            cfg = build_config(patches, list(sets))
+            cfgs = [(float(cfg.entropy.lmbda), cfg)]
+        for lm, cfg in cfgs:
+            h = config_hash(cfg)
+            d = out / "runs" / f"{_safe(m.name)}-l{lm:g}-{h}"
+            specs.append(RunSpec(m, lm, cfg, h, d))
+    return specs
+
+
+# ----------------------------------------------------------------------------------- stages
+def _read_json(path: Path) -> dict:
+    if not path.exists():
+        return {}
+    try:
+        return json.loads(path.read_text())
+    except json.JSONDecodeError as e:
+        raise ValueError(f"{path} is not valid JSON ({e}); delete it to redo that stage") from None
+
+
+def _trained(spec: RunSpec) -> Optional[dict]:
+    res = _read_json(spec.dir / "results.json")
+    if "test" in res and res.get("iterations") == spec.cfg.train.iterations:
+        return res
+    return None
+
+
+def _encoded(spec: RunSpec, record: dict) -> bool:
+    enc = record.get("encode")
+    pgs = spec.dir / MODEL_FILE
+    return bool(enc) and pgs.exists() and pgs.stat().st_size == enc.get("bytes") \
+        and record.get("config_hash") == spec.hash
+
+
+def lpips_id(weights: Optional[str]) -> Optional[str]:
+    """Which LPIPS weights a measurement used: resolved path and byte count (None: no LPIPS)."""
+    if weights is None:
+        return None
+    p = Path(weights).expanduser().resolve()
+    return f"{p} ({p.stat().st_size} bytes)" if p.is_file() else None
+
+
+def _evaluated(record: dict, lpips: Optional[str]) -> bool:
+    """Decoded measurements done for this file (and with these LPIPS weights, if any now)."""
+    dec = record.get("decoded")
+    if not dec or record.get("encode", {}).get("bytes") != dec.get("bytes"):
+        return False
+    return lpips is None or (dec.get("lpips") is not None and dec.get("lpips_weights") == lpips)
+
+
+def is_finished(spec: RunSpec, lpips: Optional[str] = None) -> bool:
+    record = _read_json(spec.dir / RECORD)
+    return _trained(spec) is not None and _encoded(spec, record) and _evaluated(record, lpips)
+
+
+def _check_scene(spec: RunSpec, scene_path: str) -> None:
+    sj = _read_json(spec.dir / "scene.json")
+    if sj and sj.get("path") != scene_path:
+        raise ValueError(f"{spec.dir} was trained on {sj.get('path')}, not {scene_path}; "
+                         f"use another --out folder for another scene")
+
+
+def _write_record(spec: RunSpec, record: dict) -> None:
+    from baseline.run import write_json_atomic
+
+    write_json_atomic(spec.dir / RECORD, record)
+
+
+def _stage_encode(spec: RunSpec, scene_path: str, record: dict) -> None:
+    from baseline.codec.model_codec import encode_model, file_info
+    from baseline.run import load_run
+
+    trainer, _ = load_run(spec.dir)
+    if trainer.phase != "adaptive":
+        tqdm.write(f"note: {spec.label} stopped before the entropy model was trained "
+                   f"(phase '{trainer.phase}'); its file is coded with an untrained context model")
+    st = encode_model(trainer.cfg, trainer.model, trainer.entropy, spec.dir / MODEL_FILE,
+                      extra_header={"scene": scene_path})
+    info = file_info(spec.dir / MODEL_FILE)
+    record["encode"] = {"bytes": st["bytes"], "encode_s": st["encode_s"], "anchors": st["anchors"],
+                        "phase": trainer.phase, "sections": info["sections"],
+                        "groups": info["groups"]}
+    record.pop("decoded", None)          # a new file: its decoded measurements are redone
+    _write_record(spec, record)
+
+
+def _stage_decoded(spec: RunSpec, scene_path: str, record: dict, lpips_fn,
+                   lpips: Optional[str]) -> None:
+    from baseline.codec.model_codec import decode_model
+    from baseline.eval.evaluate import evaluate
+    from baseline.run import load_scene_for
+
+    pgs = spec.dir / MODEL_FILE
+    dec = decode_model(pgs)
+    scene = load_scene_for(dec.cfg, scene_path)
+    cams = scene.test_cameras or scene.train_cameras
+    backend = dec.cfg.train.rasterizer
+    ev = evaluate(dec.model, scene, cams, phase="decoded", backend=backend,
+                  render_dir=spec.dir / "renders" / "decoded", lpips_fn=lpips_fn)
+    out = {"bytes": pgs.stat().st_size, "decode_s": dec.decode_s, "psnr": ev["psnr"],
+           "ssim": ev["ssim"], "lpips": ev["lpips"], "fps": ev["fps"], "n_views": ev["n_views"],
+           "lpips_weights": lpips if lpips_fn is not None else None,
+           "gaussians_mean": ev["gaussians_mean"], "anchors": ev["anchors"],
+           "split": "test" if scene.test_cameras else "train (no test views)",
+           "backend": backend, "has_cache": False, "fps_nocache": None, "psnr_nocache": None}
+    prov = dec.model.provider
+    if hasattr(prov, "build_cache") and hasattr(prov, "clear_cache"):
+        prov.clear_cache()
+        ev2 = evaluate(dec.model, scene, cams, phase="decoded", backend=backend)
+        prov.build_cache(dec.model.xyz)
+        out.update(has_cache=True, fps_nocache=ev2["fps"], psnr_nocache=ev2["psnr"])
+    record["decoded"] = out
+    _write_record(spec, record)
+
+
+def run_one(spec: RunSpec, scene_path: str, lpips_fn=None, lpips: Optional[str] = None,
+            progress: bool = True, on_stage: Optional[Callable[[str], None]] = None) -> dict:
+    """Bring one run to the finished state (skipping stages already done); return its row."""
+    from baseline.run import train_run
+    from baseline.train.trainer import set_threads
+
+    stage = on_stage or (lambda s: None)
+    _check_scene(spec, scene_path)
+    res = _trained(spec)
+    done = []
+    if res is None:
+        stage("train")
+        res = train_run(scene_path, spec.dir, spec.cfg, resume=True, progress=progress,
+                        evaluate_after=True)
+        done.append("train")
+    record = _read_json(spec.dir / RECORD)
+    if record.get("config_hash") != spec.hash or done:
+        record = {}                      # (re)trained now: an older file no longer applies
+    record.update(method=spec.method.name, method_patches=list(spec.method.patches),
+                  lmbda=spec.lmbda, config_hash=spec.hash, scene=scene_path)
+    set_threads(spec.cfg.train.threads)
+    if not _encoded(spec, record):
+        stage("encode")
+        _stage_encode(spec, scene_path, record)
+        done.append("encode")
+    if not _evaluated(record, lpips if lpips_fn is not None else None):
+        stage("decode+eval")
+        _stage_decoded(spec, scene_path, record, lpips_fn, lpips)
+        done.append("decode+eval")
+    row = make_row(spec, res, record)
+    row["stages_run"] = done
+    return row
+
+
+def make_row(spec: RunSpec, res: dict, record: dict) -> dict:
+    """One flat results row from a run's results.json and compare.json (no new measurement)."""
+    enc, dec = record["encode"], record["decoded"]
+    return {
+        "method": spec.method.name,
+        "method_patches": list(spec.method.patches),
+        "patches": list(spec.cfg.patches),
+        "lmbda": spec.lmbda,
+        "run_dir": str(spec.dir),
+        "config_hash": spec.hash,
+        "psnr": dec["psnr"], "ssim": dec["ssim"], "lpips": dec["lpips"],
+        "lpips_weights": dec.get("lpips_weights"),
+        "bytes": dec["bytes"], "mb": dec["bytes"] / MB,
+        "sections": enc["sections"], "groups": enc["groups"],
+        "iterations": res["iterations"], "train_time_s": res["train_time_s"],
+        "s_per_it": res["s_per_it"], "threads": res["threads"],
+        "encode_s": enc["encode_s"], "decode_s": dec["decode_s"],
+        "fps": dec["fps"], "fps_nocache": dec["fps_nocache"], "has_cache": dec["has_cache"],
+        "psnr_nocache": dec["psnr_nocache"],
+        "anchors": dec["anchors"], "anchors_trained": res["anchors"],
+        "gaussians_mean": dec["gaussians_mean"], "n_views": dec["n_views"], "split": dec["split"],
+        "backend": dec["backend"], "phase_at_encode": enc["phase"],
+        "pre_encode": {k: res["test"].get(k) for k in ("psnr", "ssim", "fps")},
+        "protocol": res.get("protocol", {}),
+        "train_versions": res.get("versions", {}),
+    }
+
+
+# ------------------------------------------------------------------------------ the command
+def _warm_up_rasterizer(specs: list[RunSpec]) -> None:
+    """Compile / load the CPU rasterizer kernels before anything is timed.
+
+    Otherwise the first run of the process pays it inside its training (and FPS) timings and
+    the methods' times are not comparable.
+    """
+    if not any(s.cfg.train.rasterizer in ("cpu", "auto") for s in specs):
+        return
+    try:
+        from baseline.render.cpu import kernels
+    except ImportError:        # no numba: the reference backend is used, nothing to warm up
+        return
+    kernels()
+
+
+def run_compare(scene: str | Path, out: str | Path, vs: list[str] = (),
+                lambdas: Optional[list[float]] = None, common_patches: list[str] = (),
+                sets: list[str] = (), lpips_weights: Optional[str] = None,
+                progress: bool = True, plots: bool = True, echo: bool = True) -> dict:
+    """Run (or resume) a comparison; write ``out/results.json``, ``out/report.md`` and plots."""
+    from baseline.eval.metrics import load_lpips
+    from baseline.eval.report import format_report, write_report
+    from baseline.run import versions, write_json_atomic
+
+    scene_path = str(Path(scene).resolve())
+    if not Path(scene_path).exists():
+        raise FileNotFoundError(f"scene {scene} does not exist")
+    out = Path(out)
+    methods = parse_methods(list(vs))
+    if lambdas is not None and len(set(lambdas)) != len(lambdas):
+        raise ValueError(f"--lambda lists a value twice: {lambdas}")
+    specs = plan_runs(out, methods, lambdas, list(common_patches), list(sets))
+    lpips_fn, lpips_reason = load_lpips(lpips_weights)
+    lp_id = lpips_id(lpips_weights) if lpips_fn is not None else None
+    out.mkdir(parents=True, exist_ok=True)
+
+    results = {
+        "format": RESULTS_FORMAT,
+        "scene": scene_path,
+        "baseline": BASELINE,
+        "methods": [{"name": m.name, "patches": list(m.patches)} for m in methods],
+        "common_patches": list(common_patches),
+        "sets": list(sets),
+        "lambdas": None if lambdas is None else [float(x) for x in lambdas],
+        "lpips": f"measured with {lp_id}" if lpips_fn is not None else lpips_reason,
+        "versions": versions(),
+        "complete": False,
+        "runs": [],
+    }
+    n_done = sum(is_finished(s, lp_id) for s in specs)
+    if echo:
+        print(f"compare: {len(methods)} method(s) x {len(specs) // len(methods)} rate point(s) = "
+              f"{len(specs)} run(s) on {scene_path}; {n_done} already finished in {out / 'runs'}")
+    if n_done < len(specs):
+        _warm_up_rasterizer(specs)
+    t0 = time.perf_counter()
+    bar = tqdm(total=len(specs), desc="compare", unit="run", disable=not progress,
+               dynamic_ncols=True, position=0)
+    for i, spec in enumerate(specs):
+        head = f"[{i + 1}/{len(specs)}] {spec.label}"
+        bar.set_postfix_str(head, refresh=True)
+
+        def on_stage(s, head=head):
+            bar.set_postfix_str(f"{head}: {s}", refresh=True)
+            if echo:
+                tqdm.write(f"{head}: {s} ({spec.dir})")
+
+        row = run_one(spec, scene_path, lpips_fn, lp_id, progress=progress, on_stage=on_stage)
+        results["runs"].append(row)
+        write_json_atomic(out / "results.json", results)       # partial results survive
+        if echo:
+            what = "measured now: " + ", ".join(row["stages_run"]) if row["stages_run"] \
+                else "reused (finished earlier)"
+            tqdm.write(f"{head}: PSNR {row['psnr']:.3f} dB  {row['mb']:.4f} MB  "
+                       f"FPS {row['fps']:.1f}  [{what}]")
+        bar.update(1)
+    bar.close()
+    results["complete"] = True
+    results["wall_s_this_invocation"] = time.perf_counter() - t0
+    paths = write_report(results, out, plots=plots)
+    results["report"] = {k: str(v) for k, v in paths.items()}
+    write_json_atomic(out / "results.json", results)
+    if echo:
+        print(format_report(results, markdown=False))
+        print("wrote " + ", ".join(str(p) for p in [out / "results.json", *paths.values()]))
+    return results

@@ -1,0 +1,376 @@
+"""The comparison report: tables for the terminal and ``report.md``, computed from stored results.
+
+Input is the ``results.json`` structure written by :func:`baseline.eval.compare.run_compare`
+(``runs``: one flat row per method and lambda, see :func:`baseline.eval.compare.make_row`).
+Nothing here measures anything: every figure is a stored measurement or arithmetic on them
+(ratios to the baseline, Bjontegaard deltas).
+
+Tables:
+  1. quality and size of the decoded file per method and lambda;
+  2. bit allocation per group, then as the paper's Table 3 (feature vs the rest) with the saving
+     in percent against the baseline at the same rate point, then section by section;
+  3. speed against error (train time, s/it, encode, decode, FPS with / without the cache);
+  4. BD-rate / BD-PSNR against the baseline (PCHIP, :mod:`baseline.eval.bdrate`) for methods with
+     at least 3 rate points;
+  5. the protocol (scene, resolution, split, background, iterations, threads, backend, versions).
+"""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Optional
+
+from baseline.eval.bdrate import BDError, bd_psnr, bd_rate
+
+MB = 2 ** 20
+GROUP_ORDER = ["feature", "anchor", "scaling", "offsets", "masks", "hash", "mlps", "header+framing"]
+BD_MIN_POINTS = 3
+
+
+# ------------------------------------------------------------------------------ selection
+def method_names(results: dict) -> list[str]:
+    names = [m["name"] for m in results.get("methods", [])]
+    for r in results["runs"]:
+        if r["method"] not in names:
+            names.append(r["method"])
+    return names
+
+
+def runs_of(results: dict, method: str) -> list[dict]:
+    return sorted((r for r in results["runs"] if r["method"] == method), key=lambda r: r["lmbda"])
+
+
+def ordered_runs(results: dict) -> list[dict]:
+    return [r for m in method_names(results) for r in runs_of(results, m)]
+
+
+def baseline_partner(results: dict, row: dict) -> Optional[dict]:
+    """The baseline run ``row`` is measured against: same lambda; else the only one of each."""
+    base = runs_of(results, results.get("baseline", "baseline"))
+    same = [b for b in base if b["lmbda"] == row["lmbda"]]
+    if same:
+        return same[0]
+    if len(base) == 1 and len(runs_of(results, row["method"])) == 1:
+        return base[0]
+    return None
+
+
+def rate_points(results: dict) -> list[list[dict]]:
+    """Runs grouped by rate point: by lambda when all methods share the lambdas, else by rank."""
+    names = method_names(results)
+    per = [runs_of(results, m) for m in names]
+    lam_sets = {tuple(r["lmbda"] for r in rs) for rs in per if rs}
+    if len(lam_sets) == 1:
+        lams = next(iter(lam_sets))
+        return [[r for rs in per for r in rs if r["lmbda"] == lm] for lm in lams]
+    n = max((len(rs) for rs in per), default=0)
+    return [[rs[i] for rs in per if i < len(rs)] for i in range(n)]
+
+
+def others_bytes(row: dict) -> int:
+    return row["bytes"] - row["groups"].get("feature", 0)
+
+
+def compute_bd(results: dict) -> list[dict]:
+    """BD-rate (size in MB) and BD-PSNR (decoded PSNR) of each method against the baseline."""
+    base_name = results.get("baseline", "baseline")
+    base = runs_of(results, base_name)
+    out = []
+    for m in method_names(results):
+        if m == base_name:
+            continue
+        rs = runs_of(results, m)
+        item = {"method": m, "points": len(rs), "baseline_points": len(base), "bd_rate": None,
+                "bd_psnr": None, "note": ""}
+        if min(len(rs), len(base)) < BD_MIN_POINTS:
+            item["note"] = (f"needs >= {BD_MIN_POINTS} rate points per method "
+                            f"(have {len(rs)}, baseline {len(base)})")
+        else:
+            args = ([b["mb"] for b in base], [b["psnr"] for b in base],
+                    [r["mb"] for r in rs], [r["psnr"] for r in rs])
+            notes = []
+            for key, fn in (("bd_rate", bd_rate), ("bd_psnr", bd_psnr)):
+                try:
+                    item[key] = fn(*args)
+                except BDError as e:      # each measure needs its own overlap: keep the other
+                    notes.append(str(e))
+            item["note"] = "; ".join(notes)
+        out.append(item)
+    return out
+
+
+# ------------------------------------------------------------------------------ formatting
+def _f(x, nd: int, unit: str = "") -> str:
+    if x is None:
+        return "-"
+    if isinstance(x, float) and not math.isfinite(x):
+        return str(x)
+    return f"{x:.{nd}f}{unit}"
+
+
+def _pct(x: Optional[float]) -> str:
+    return "-" if x is None else f"{x:+.1f}%"
+
+
+def _saving(value: float, ref: Optional[float]) -> Optional[float]:
+    """Saving in percent against ``ref`` (positive = smaller than the baseline)."""
+    if ref is None or ref == 0:
+        return None
+    return 100.0 * (1.0 - value / ref)
+
+
+def _change(value: float, ref: Optional[float]) -> Optional[float]:
+    if ref is None or ref == 0:
+        return None
+    return 100.0 * (value / ref - 1.0)
+
+
+def _is_base(results: dict, r: dict) -> bool:
+    return r["method"] == results.get("baseline", "baseline")
+
+
+def _lam(r: dict) -> str:
+    return f"{r['lmbda']:g}"
+
+
+class Table:
+    def __init__(self, title: str, headers: list[str], rows: list[list[str]], notes=(),
+                 left: int = 1):
+        self.title, self.headers, self.rows, self.notes, self.left = title, headers, rows, list(notes), left
+
+    def text(self) -> str:
+        cols = list(zip(self.headers, *self.rows)) if self.rows else [(h,) for h in self.headers]
+        w = [max(len(str(c)) for c in col) for col in cols]
+
+        def line(cells):
+            return "  ".join(str(c).ljust(w[i]) if i < self.left else str(c).rjust(w[i])
+                             for i, c in enumerate(cells)).rstrip()
+
+        out = [self.title, "=" * len(self.title), line(self.headers),
+               "  ".join("-" * x for x in w)]
+        out += [line(r) for r in self.rows]
+        out += [f"  {n}" for n in self.notes]
+        return "\n".join(out)
+
+    def markdown(self) -> str:
+        align = ["---" if i < self.left else "---:" for i in range(len(self.headers))]
+        out = [f"### {self.title}", "", "| " + " | ".join(self.headers) + " |",
+               "|" + "|".join(align) + "|"]
+        out += ["| " + " | ".join(str(c) for c in r) + " |" for r in self.rows]
+        if self.notes:
+            out.append("")
+            out += [f"{n}  " for n in self.notes]
+        return "\n".join(out)
+
+
+def _lpips_note(results: dict) -> str:
+    runs = results["runs"]
+    ids = sorted({str(r.get("lpips_weights")) for r in runs if r["lpips"] is not None})
+    if not ids:
+        return str(results.get("lpips") or "LPIPS unavailable: pass --lpips-weights PATH")
+    note = "LPIPS: VGG16 LPIPS with weights " + "; ".join(ids)
+    if any(r["lpips"] is None for r in runs):
+        note += " ('unavailable' rows: pass --lpips-weights PATH)"
+    return note
+
+
+def quality_table(results: dict) -> Table:
+    rows = []
+    for r in ordered_runs(results):
+        p = baseline_partner(results, r)
+        rows.append([r["method"], _lam(r), _f(r["psnr"], 3),
+                     _f((r.get("pre_encode") or {}).get("psnr"), 3), _f(r["ssim"], 4),
+                     "unavailable" if r["lpips"] is None else _f(r["lpips"], 4),
+                     _f(r["mb"], 4),
+                     "ref" if _is_base(results, r) else _pct(_change(r["bytes"], p and p["bytes"])),
+                     str(r["anchors"])])
+    notes = ["Decoded .pgs file on the test views; metrics on uint8 images. 'pre-encode': PSNR "
+             "of the trained model before coding. MB = file bytes / 2^20; size change vs the "
+             "baseline at the same rate point.",
+             _lpips_note(results)]
+    return Table("Quality and size (decoded file)",
+                 ["method", "lambda", "PSNR (dB)", "pre-encode", "SSIM", "LPIPS", "size (MB)",
+                  "vs baseline", "anchors"], rows, notes, left=2)
+
+
+def groups_table(results: dict) -> Table:
+    runs = ordered_runs(results)
+    present = [g for g in GROUP_ORDER if any(g in r["groups"] for r in runs)]
+    extra = sorted({g for r in runs for g in r["groups"]} - set(GROUP_ORDER))
+    groups = present + extra
+    rows = [[r["method"], _lam(r)] + [_f(r["groups"].get(g, 0) / MB, 4) for g in groups]
+            + [_f(r["mb"], 4)] for r in runs]
+    return Table("Bit allocation by group (MB)", ["method", "lambda"] + groups + ["total"], rows,
+                 ["feature = the feature provider's coded attribute(s) and sections (HAC: feat; "
+                  "Predict-GS: SFP grid + fusion MLP + residual); read from each file."], left=2)
+
+
+def table3(results: dict) -> Table:
+    rows = []
+    for r in ordered_runs(results):
+        p = baseline_partner(results, r)
+        feat = r["groups"].get("feature", 0)
+        oth = others_bytes(r)
+        sav = (["ref"] * 3 if _is_base(results, r) else
+               [_pct(_saving(feat, p and p["groups"].get("feature", 0))),
+                _pct(_saving(oth, p and others_bytes(p))), _pct(_saving(r["bytes"], p and p["bytes"]))])
+        rows.append([r["method"], _lam(r), _f(feat / MB, 4), _f(oth / MB, 4), _f(r["mb"], 4)] + sav)
+    return Table("Feature vs others (as the paper's Table 3)",
+                 ["method", "lambda", "feature (MB)", "others (MB)", "total (MB)",
+                  "feature saving", "others saving", "total saving"], rows,
+                 ["saving = 1 - size / baseline size at the same rate point (positive = smaller)."],
+                 left=2)
+
+
+def section_tables(results: dict) -> list[Table]:
+    tables = []
+    for point in rate_points(results):
+        if not point:
+            continue
+        shared = len({r["lmbda"] for r in point}) == 1
+        heads = [r["method"] if shared else f"{r['method']} (lambda {_lam(r)})" for r in point]
+        names: list[tuple[str, str]] = []
+        for r in point:
+            for s in r["sections"]:
+                if (s["section"], s["group"]) not in names:
+                    names.append((s["section"], s["group"]))
+        names.sort(key=lambda sg: (GROUP_ORDER.index(sg[1]) if sg[1] in GROUP_ORDER else 99, sg[0]))
+        per = [{s["section"]: s["bytes"] for s in r["sections"]} for r in point]
+        rows = [[sec, grp] + [str(d[sec]) if sec in d else "-" for d in per] for sec, grp in names]
+        hf = [r["groups"].get("header+framing", 0) for r in point]
+        rows.append(["(header + framing)", "header+framing"] + [str(x) for x in hf])
+        rows.append(["total (file size)", ""] + [str(r["bytes"]) for r in point])
+        title = "Sections (bytes)" + (f" at lambda {_lam(point[0])}" if shared else "")
+        tables.append(Table(title, ["section", "group"] + heads, rows, left=2))
+    return tables
+
+
+def speed_table(results: dict) -> Table:
+    rows = []
+    any_cache = False
+    for r in ordered_runs(results):
+        any_cache |= bool(r["has_cache"])
+        rows.append([r["method"], _lam(r), _f(r["psnr"], 3), _f(r["mb"], 4), _f(r["train_time_s"], 1),
+                     _f(r["s_per_it"], 4), _f(r["encode_s"], 3), _f(r["decode_s"], 3),
+                     _f(r["fps"], 1), _f(r["fps_nocache"], 1) if r["has_cache"] else "(no cache)"])
+    notes = ["FPS = 1 / mean per-view time of prefilter + Gaussian decoding + rasterization on the "
+             "test views (the first 5 views skipped when there are more), decoded model.",
+             "Train time is the optimization loop only (summed over resumed sessions); "
+             "every timing is one measurement on the machine as it was loaded at the time."]
+    if any_cache:
+        notes.append("FPS with the decoded-model cache (per-anchor predicted features computed once "
+                     "at decode, inside the decode time) in 'FPS'; 'FPS w/o cache' recomputes "
+                     "them every view. "
+                     "'(no cache)': the model has none, its one FPS is in 'FPS'.")
+    return Table("Speed against error", ["method", "lambda", "PSNR (dB)", "size (MB)", "train (s)",
+                                         "s/it", "encode (s)", "decode (s)", "FPS",
+                                         "FPS w/o cache"], rows, notes, left=2)
+
+
+def bd_table(results: dict) -> Table:
+    bd = results.get("bd") or compute_bd(results)
+    rows, foot = [], []
+    for b in bd:
+        mark = ""
+        if b["note"]:
+            foot.append(f"({len(foot) + 1}) {b['method']}: {b['note']}")
+            mark = f"({len(foot)})"
+        rows.append([b["method"], f"{b['points']} vs {b['baseline_points']}",
+                     "-" if b["bd_rate"] is None else f"{b['bd_rate']:+.2f}",
+                     "-" if b["bd_psnr"] is None else f"{b['bd_psnr']:+.3f}", mark])
+    return Table(f"Bjontegaard deltas against {results.get('baseline', 'baseline')}",
+                 ["method", "points", "BD-rate (%)", "BD-PSNR (dB)", "note"], rows,
+                 foot + ["Piecewise cubic (PCHIP) interpolation of log10(size) vs PSNR (BD-rate) "
+                         "and PSNR vs log10(size) (BD-PSNR), integrated over the overlapping "
+                         "interval; size = file MB. Negative BD-rate = fewer bytes at equal PSNR."],
+                 left=1)
+
+
+def protocol_lines(results: dict) -> list[tuple[str, str]]:
+    runs = ordered_runs(results)
+    prot = runs[0].get("protocol", {}) if runs else {}
+
+    def per_method(key: str) -> str:
+        vals = {}
+        for r in runs:
+            vals.setdefault(str(r[key]), []).append(f"{r['method']} {_lam(r)}")
+        if len(vals) <= 1:
+            return next(iter(vals), "-")
+        return "; ".join(f"{v} ({', '.join(who)})" for v, who in vals.items())
+
+    size = prot.get("image_size")
+    items = [
+        ("scene", results.get("scene", "-")),
+        ("format", str(prot.get("format", "-"))),
+        ("resolution", f"{size[0]} x {size[1]} px (downscale {prot.get('downscale', '-')}, "
+                       f"resolution setting {prot.get('resolution', '-')})"
+         if isinstance(size, list) and len(size) == 2 and not isinstance(size[0], list)
+         else str(size)),
+        ("split", f"{prot.get('split', '-')} ({prot.get('n_train', '?')} train / "
+                  f"{prot.get('n_test', '?')} test views)"),
+        ("background", str(prot.get("background", "-"))),
+        ("methods", "; ".join(f"{m['name']} = common patches" + (" + " + " + ".join(m["patches"])
+                                                                 if m["patches"] else "")
+                              for m in results.get("methods", []))),
+        ("common patches", ", ".join(results.get("common_patches", [])) or "(none)"),
+        ("--set", ", ".join(results.get("sets", [])) or "(none)"),
+        ("iterations", per_method("iterations")),
+        ("threads", per_method("threads")),
+        ("backend", per_method("backend")),
+        ("evaluated on", per_method("split")),
+        ("LPIPS", str(results.get("lpips", "unavailable"))),
+        ("versions", ", ".join(f"{k} {v}" for k, v in results.get("versions", {}).items())),
+    ]
+    tv = {tuple(sorted(r.get("train_versions", {}).items())) for r in runs}
+    cur = tuple(sorted(results.get("versions", {}).items()))
+    if any(v and v != cur for v in tv):
+        items.append(("note", "some runs were trained with other versions: see each run's "
+                              "results.json"))
+    return items
+
+
+def all_tables(results: dict) -> list[Table]:
+    return ([quality_table(results), groups_table(results), table3(results)]
+            + section_tables(results) + [speed_table(results), bd_table(results)])
+
+
+def format_report(results: dict, markdown: bool = False) -> str:
+    tables = all_tables(results)
+    prot = protocol_lines(results)
+    if markdown:
+        parts = ["# Comparison report", "",
+                 f"Scene `{results.get('scene', '-')}`; baseline `{results.get('baseline')}`; "
+                 f"every number is measured on the decoded `.pgs` file or read from the runs' "
+                 f"records ({len(results['runs'])} runs)."]
+        if not results.get("complete", True):
+            parts.append("\n**Incomplete comparison**: some runs have not finished.")
+        for t in tables:
+            parts += ["", t.markdown()]
+        parts += ["", "### Protocol", ""] + [f"- **{k}**: {v}" for k, v in prot]
+        plots = results.get("plots") or {}
+        if plots:
+            parts += ["", "### Plots", ""] + [f"![{k}]({Path(v).name})" for k, v in plots.items()]
+        return "\n".join(parts) + "\n"
+    parts = [t.text() for t in tables]
+    w = max(len(k) for k, _ in prot)
+    parts.append("Protocol\n========\n" + "\n".join(f"{k.ljust(w)}  {v}" for k, v in prot))
+    return "\n\n".join(parts)
+
+
+def write_report(results: dict, out_dir: str | Path, plots: bool = True) -> dict:
+    """Write ``report.md`` (+ the PNG plots) into ``out_dir``; returns the written paths."""
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    results["bd"] = compute_bd(results)
+    paths = {}
+    if plots and results["runs"]:
+        from baseline.eval.plots import write_plots
+
+        results["plots"] = {k: str(v) for k, v in write_plots(results, out_dir).items()}
+        paths.update({k: Path(v) for k, v in results["plots"].items()})
+    md = out_dir / "report.md"
+    tmp = md.with_suffix(".md.tmp")
+    tmp.write_text(format_report(results, markdown=True))
+    tmp.replace(md)
+    paths["report"] = md
+    return paths

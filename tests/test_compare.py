@@ -1,0 +1,188 @@
+"""`pgs compare` end to end on a tiny scene: an interrupted comparison resumes without redoing
+finished work, the entropy-model swap gives two comparable rows, the report lists them."""
+import json
+from pathlib import Path
+
+import pytest
+import torch
+
+import baseline.run as run_mod
+from baseline import registry
+from baseline.codec.model_codec import file_info
+from baseline.config import ConfigError
+from baseline.data.synthetic import make_scene
+from baseline.eval.compare import (BASELINE, MODEL_FILE, RECORD, is_finished, parse_methods,
+                                   plan_runs, run_compare)
+from baseline.train.trainer import CHECKPOINT_NAME, Trainer
+
+ITERS = 24
+SETS = [f"train.iterations={ITERS}", "train.threads=1", "train.log_every=1000",
+        "train.save_test_renders=false"]
+VS = ["entropy-factorized", "predict-gs"]
+
+
+@pytest.fixture(scope="module", autouse=True)
+def one_thread():
+    torch.set_num_threads(1)
+    registry.ensure_loaded()
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    d = tmp_path_factory.mktemp("cmp_scene")
+    return make_scene(d / "scene", n_views=10, width=48, height=36, n_points=600, seed=3)
+
+
+def test_methods_and_plan(tmp_path):
+    ms = parse_methods(["predict-gs", "predict-gs+entropy-factorized"])
+    assert [m.name for m in ms] == [BASELINE, "predict-gs", "predict-gs+entropy-factorized"]
+    assert ms[2].patches == ("predict-gs", "entropy-factorized")
+    with pytest.raises(ValueError, match="twice"):
+        parse_methods(["predict-gs", "predict-gs"])
+    with pytest.raises(ValueError, match="joined by"):
+        parse_methods(["+"])
+    specs = plan_runs(tmp_path, ms, [0.004, 0.0005], ["demo"], SETS)
+    assert len(specs) == 6 and len({s.dir for s in specs}) == 6
+    assert {s.cfg.entropy.lmbda for s in specs} == {0.004, 0.0005}
+    assert specs[0].dir.name.startswith("baseline-l0.004-")
+    assert specs[5].cfg.model.feature_provider == "sfp" and specs[5].cfg.entropy.model == "factorized"
+    # no --lambda: each method at its own configured lambda
+    own = plan_runs(tmp_path, parse_methods(["predict-gs-high-rate"]), None, ["demo"], SETS)
+    assert [s.lmbda for s in own] == [0.004, 0.0005]
+    with pytest.raises(ConfigError, match="unknown patch"):
+        plan_runs(tmp_path, parse_methods(["no-such-patch"]), None, [], SETS)
+
+
+def _mtimes(d: Path) -> dict:
+    return {n: (d / n).stat().st_mtime_ns for n in (CHECKPOINT_NAME, MODEL_FILE, RECORD, "results.json")}
+
+
+def test_interrupted_compare_resumes(scene, tmp_path, monkeypatch, capsys):
+    out = tmp_path / "cmp"
+    real_train_run = run_mod.train_run
+    calls = []
+
+    def interrupted(scene_path, run_out, cfg, resume=False, progress=True, evaluate_after=True):
+        calls.append(Path(run_out).name)
+        if Path(run_out).name.startswith("entropy-factorized"):
+            # killed halfway through training: a checkpoint at ITERS // 2, no results.json
+            sc = run_mod.load_scene_for(cfg, scene_path)
+            Trainer(cfg, sc, run_out, progress=False).train(until=ITERS // 2)
+            raise KeyboardInterrupt
+        return real_train_run(scene_path, run_out, cfg, resume=resume, progress=progress,
+                              evaluate_after=evaluate_after)
+
+    monkeypatch.setattr(run_mod, "train_run", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        run_compare(scene, out, vs=VS, common_patches=["demo"], sets=SETS, progress=False)
+    specs = plan_runs(out, parse_methods(VS), None, ["demo"], SETS)
+    base, fact, pgs = specs
+    assert is_finished(base) and not is_finished(fact) and not is_finished(pgs)
+    assert not (fact.dir / "results.json").exists()
+    assert torch.load(fact.dir / CHECKPOINT_NAME, weights_only=False)["iteration"] == ITERS // 2
+    partial = json.loads((out / "results.json").read_text())
+    assert partial["complete"] is False and [r["method"] for r in partial["runs"]] == [BASELINE]
+    base_before = _mtimes(base.dir)
+    base_record = (base.dir / RECORD).read_text()
+
+    calls.clear()
+
+    def counting(scene_path, run_out, cfg, resume=False, progress=True, evaluate_after=True):
+        calls.append(Path(run_out).name)
+        return real_train_run(scene_path, run_out, cfg, resume=resume, progress=progress,
+                              evaluate_after=evaluate_after)
+
+    monkeypatch.setattr(run_mod, "train_run", counting)
+    capsys.readouterr()
+    res = run_compare(scene, out, vs=VS, common_patches=["demo"], sets=SETS, progress=False)
+    printed = capsys.readouterr().out
+    # the finished baseline was neither retrained nor re-encoded nor re-measured
+    assert calls == [fact.dir.name, pgs.dir.name]
+    assert _mtimes(base.dir) == base_before
+    assert (base.dir / RECORD).read_text() == base_record
+    # the interrupted run continued from its checkpoint
+    assert f"resumed from {fact.dir / CHECKPOINT_NAME} at iteration {ITERS // 2}" in printed
+    rows = {r["method"]: r for r in res["runs"]}
+    assert rows[BASELINE]["stages_run"] == []
+    assert rows["entropy-factorized"]["stages_run"] == ["train", "encode", "decode+eval"]
+    assert all(r["iterations"] == ITERS for r in rows.values())
+    assert res["complete"] is True
+    for name in ("results.json", "report.md", "rd.png", "bits.png", "speed.png"):
+        assert (out / name).exists(), name
+
+    # ---- the entropy-model swap: two comparable rows (same everything but the entropy model)
+    b, f = rows[BASELINE], rows["entropy-factorized"]
+    assert b["lmbda"] == f["lmbda"] and b["iterations"] == f["iterations"] == ITERS
+    assert b["backend"] == f["backend"] == "cpu" and b["split"] == f["split"] == "test"
+    secs_b = {s["section"] for s in b["sections"]}
+    secs_f = {s["section"] for s in f["sections"]}
+    assert "em.grid" in secs_b and "em.grid" not in secs_f and "em.factorized" in secs_f
+    for r in rows.values():
+        pgs_file = Path(r["run_dir"]) / MODEL_FILE
+        info = file_info(pgs_file)
+        assert r["bytes"] == pgs_file.stat().st_size == info["total_bytes"]
+        assert r["mb"] == r["bytes"] / 2 ** 20
+        assert sum(r["groups"].values()) == r["bytes"]
+        assert r["groups"] == info["groups"]
+        assert 0 < r["psnr"] < 100 and 0 < r["ssim"] <= 1 and r["lpips"] is None
+        assert r["fps"] > 0 and r["encode_s"] > 0 and r["decode_s"] > 0 and r["train_time_s"] > 0
+        assert r["anchors"] == info["n_anchors"]
+    # Predict-GS keeps a decoded-model cache: FPS with and without it, same image either way
+    p = rows["predict-gs"]
+    assert p["has_cache"] and p["fps_nocache"] > 0 and p["psnr_nocache"] == pytest.approx(p["psnr"])
+    assert not b["has_cache"] and b["fps_nocache"] is None
+    md = (out / "report.md").read_text()
+    assert "| entropy-factorized | 0.004 |" in md and "| baseline | 0.004 |" in md
+    assert "(no cache)" in printed and "Bjontegaard" in printed
+
+    # ---- a third invocation through the CLI reuses everything
+    from baseline.cli import main
+
+    calls.clear()
+    assert main(["compare", str(scene), "--patch", "demo", "--out", str(out), "--no-progress",
+                 *[a for v in VS for a in ("--vs", v)], *[a for s in SETS for a in ("--set", s)]]) == 0
+    assert calls == []
+    again = json.loads((out / "results.json").read_text())
+    assert all(r["stages_run"] == [] for r in again["runs"])
+    assert [(r["method"], r["bytes"], r["psnr"]) for r in again["runs"]] == \
+        [(r["method"], r["bytes"], r["psnr"]) for r in res["runs"]]
+    assert "3 run(s)" in capsys.readouterr().out
+
+
+def test_compare_refuses_other_scene(scene, tmp_path):
+    other = make_scene(tmp_path / "other", n_views=10, width=48, height=36, n_points=100, seed=4)
+    out = tmp_path / "cmp"
+    spec = plan_runs(out, parse_methods([]), None, ["demo"], SETS)[0]
+    spec.dir.mkdir(parents=True)
+    (spec.dir / "scene.json").write_text(json.dumps({"path": str(Path(other).resolve())}))
+    with pytest.raises(ValueError, match="another --out"):
+        run_compare(scene, out, common_patches=["demo"], sets=SETS, progress=False, echo=False)
+
+
+def test_lpips_weights_redo_only_the_decoded_stage(scene, tmp_path, monkeypatch):
+    """Weights given on a rerun: only decode + evaluate run again, and LPIPS appears."""
+    from baseline.eval.metrics import LPIPS
+
+    out = tmp_path / "cmp"
+    run_compare(scene, out, vs=["entropy-factorized"], common_patches=["demo"], sets=SETS,
+                progress=False, plots=False, echo=False)
+    spec = plan_runs(out, parse_methods(["entropy-factorized"]), None, ["demo"], SETS)[1]
+    before = _mtimes(spec.dir)
+    enc_before = json.loads((spec.dir / RECORD).read_text())["encode"]
+    torch.manual_seed(0)
+    net = LPIPS()        # random weights: this tests the plumbing, not the metric's values
+    for lin in net.lins:
+        lin.weight.data.abs_()                       # LPIPS heads are non-negative
+    w = tmp_path / "lpips.pth"
+    torch.save({k: v for k, v in net.state_dict().items() if k not in ("shift", "scale")}, w)
+    calls = []
+    monkeypatch.setattr(run_mod, "train_run", lambda *a, **k: calls.append(a) or {})
+    res = run_compare(scene, out, vs=["entropy-factorized"], common_patches=["demo"], sets=SETS,
+                      lpips_weights=str(w), progress=False, plots=False, echo=False)
+    assert calls == []
+    assert all(r["stages_run"] == ["decode+eval"] for r in res["runs"])
+    assert all(r["lpips"] is not None and r["lpips"] >= 0 for r in res["runs"])
+    assert json.loads((spec.dir / RECORD).read_text())["encode"] == enc_before
+    after = _mtimes(spec.dir)
+    assert after[MODEL_FILE] == before[MODEL_FILE] and after[CHECKPOINT_NAME] == before[CHECKPOINT_NAME]
+    assert "VGG16 LPIPS with weights" in (out / "report.md").read_text()

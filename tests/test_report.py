@@ -1,0 +1,128 @@
+"""Report generation from stored comparison results (no training): tables, report.md, plots."""
+import json
+
+import pytest
+
+from baseline.eval.report import (baseline_partner, compute_bd, format_report, rate_points,
+                                  write_report)
+
+MB = 2 ** 20
+LAMBDAS = [0.0005, 0.002, 0.004]
+
+
+def _row(method, lmbda, psnr, feat, others, cache=False, fps=100.0):
+    total = feat + others
+    groups = {"feature": feat, "anchor": others // 4, "scaling": others // 4, "offsets": others // 4,
+              "mlps": others - 3 * (others // 4) - 100, "header+framing": 100}
+    sections = [{"section": "feat" if not cache else "residual", "group": "feature", "bytes": feat},
+                {"section": "positions", "group": "anchor", "bytes": groups["anchor"]},
+                {"section": "scaling", "group": "scaling", "bytes": groups["scaling"]},
+                {"section": "offsets", "group": "offsets", "bytes": groups["offsets"]},
+                {"section": "decoder.weights", "group": "mlps", "bytes": groups["mlps"]}]
+    return {"method": method, "method_patches": [] if method == "baseline" else method.split("+"),
+            "patches": ["cpu"], "lmbda": lmbda, "run_dir": f"runs/{method}-l{lmbda:g}-x",
+            "config_hash": "x", "psnr": psnr, "ssim": 0.9, "lpips": None, "bytes": total,
+            "mb": total / MB, "sections": sections, "groups": groups, "iterations": 8000,
+            "train_time_s": 1234.5, "s_per_it": 0.154, "threads": 2, "encode_s": 1.5,
+            "decode_s": 0.75, "fps": fps, "fps_nocache": fps / 2 if cache else None,
+            "has_cache": cache, "psnr_nocache": psnr if cache else None, "anchors": 5000,
+            "anchors_trained": 5100, "gaussians_mean": 40000.0, "n_views": 25, "split": "test",
+            "backend": "cpu", "phase_at_encode": "adaptive",
+            "pre_encode": {"psnr": psnr, "ssim": 0.9, "fps": fps},
+            "protocol": {"format": "colmap", "image_size": [980, 545], "downscale": 4.0,
+                         "resolution": 4, "split": "every 8th view is a test view",
+                         "background": [0.0, 0.0, 0.0], "n_train": 220, "n_test": 31},
+            "train_versions": {"python": "3.11", "torch": "2.13.0"}}
+
+
+def stored_results():
+    base_psnr = [27.0, 26.2, 25.1]
+    base_feat = [6 * MB, 4 * MB, 3 * MB]
+    base_oth = [4 * MB, 3 * MB, 2 * MB]
+    runs = []
+    for lm, p, f, o in zip(LAMBDAS, base_psnr, base_feat, base_oth):
+        runs.append(_row("baseline", lm, p, f, o))
+        # contender: 0.8x the bytes of every group at the same PSNR -> BD-rate -20 % exactly
+        runs.append(_row("predict-gs", lm, p, int(0.4 * f), int(0.8 * (f + o)) - int(0.4 * f),
+                         cache=True, fps=80.0))
+        runs.append(_row("entropy-factorized", lm, p - 0.5, f, o))       # same bytes, -0.5 dB
+    # the factorized row's groups must sum to bytes; rows above do by construction
+    return {"format": "pgs-compare/1", "scene": "/data/tandt_truck", "baseline": "baseline",
+            "methods": [{"name": "baseline", "patches": []},
+                        {"name": "predict-gs", "patches": ["predict-gs"]},
+                        {"name": "entropy-factorized", "patches": ["entropy-factorized"]}],
+            "common_patches": ["cpu"], "sets": [], "lambdas": LAMBDAS,
+            "lpips": "LPIPS unavailable: pass --lpips-weights PATH",
+            "versions": {"python": "3.11", "torch": "2.13.0"}, "complete": True, "runs": runs}
+
+
+def test_bd_from_stored_results():
+    res = stored_results()
+    bd = {b["method"]: b for b in compute_bd(res)}
+    # bytes were rounded to integers: -20 % up to that rounding
+    assert bd["predict-gs"]["bd_rate"] == pytest.approx(-20.0, abs=1e-4)
+    assert bd["entropy-factorized"]["bd_psnr"] == pytest.approx(-0.5, abs=1e-9)
+    assert bd["entropy-factorized"]["bd_rate"] > 0
+
+
+def test_bd_needs_three_points():
+    res = stored_results()
+    res["runs"] = [r for r in res["runs"] if r["lmbda"] != 0.004]
+    bd = compute_bd(res)
+    assert all(b["bd_rate"] is None and ">= 3" in b["note"] for b in bd)
+
+
+def test_partner_and_points():
+    res = stored_results()
+    pts = rate_points(res)
+    assert [len(p) for p in pts] == [3, 3, 3]
+    r = [x for x in res["runs"] if x["method"] == "predict-gs" and x["lmbda"] == 0.002][0]
+    assert baseline_partner(res, r)["lmbda"] == 0.002
+    # one run per method at different lambdas (no --lambda): paired with the single baseline run
+    res["runs"] = [res["runs"][0], res["runs"][4]]
+    assert baseline_partner(res, res["runs"][1]) is res["runs"][0]
+    assert [len(p) for p in rate_points(res)] == [2]
+
+
+def test_report_text_and_markdown(tmp_path):
+    res = stored_results()
+    txt = format_report(res)
+    for s in ("Quality and size", "Bit allocation by group", "Table 3", "Sections (bytes) at lambda 0.002",
+              "Speed against error", "Bjontegaard", "Protocol", "980 x 545 px", "unavailable",
+              "-20.00", "(no cache)", "threads"):
+        assert s in txt, s
+    # Table 3 savings are arithmetic on the stored bytes: predict-gs feature = 0.4 x baseline
+    line = [ln for ln in txt.splitlines() if ln.startswith("predict-gs") and "+60.0%" in ln]
+    assert len(line) == 3
+    paths = write_report(res, tmp_path)
+    md = (tmp_path / "report.md").read_text()
+    assert md.startswith("# Comparison report")
+    assert "| method | lambda | PSNR (dB) |" in md
+    assert "![rd](rd.png)" in md
+    for k in ("rd", "bits", "speed"):
+        p = paths[k]
+        assert p.exists() and p.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", k
+        assert p.stat().st_size > 10_000
+    json.dumps(res)               # still serializable after the report added its fields
+
+
+def test_report_with_single_points_and_lpips(tmp_path):
+    res = stored_results()
+    res["runs"] = [r for r in res["runs"] if r["lmbda"] == 0.004]
+    for r in res["runs"]:
+        r["lpips"] = 0.25
+    txt = format_report(res)
+    assert "0.2500" in txt and "needs >= 3 rate points" in txt
+    write_report(res, tmp_path)
+    assert (tmp_path / "bits.png").exists()
+
+
+def test_bd_psnr_kept_when_only_bd_rate_is_impossible():
+    res = stored_results()
+    # contender PSNRs all above the baseline's (no PSNR overlap) but the same sizes (log-rate overlap)
+    for r in res["runs"]:
+        if r["method"] == "entropy-factorized":
+            r["psnr"] += 5.0
+    bd = {b["method"]: b for b in compute_bd(res)}["entropy-factorized"]
+    assert bd["bd_rate"] is None and "BD-rate" in bd["note"] and "overlap" in bd["note"]
+    assert bd["bd_psnr"] == pytest.approx(4.5, abs=1e-9)
