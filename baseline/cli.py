@@ -220,21 +220,23 @@ def cmd_compare(args) -> int:
 
 
 def cmd_demo(args) -> int:
-    """The main job on the embedded default scene (until `compare` lands: train + evaluate)."""
-    from baseline.config import build_config
+    """The main job on the embedded default scene: baseline (HAC) vs Predict-GS, side by side."""
     from baseline.data.synthetic import make_scene
-    from baseline.run import train_run
+    from baseline.eval.compare import run_compare
 
     out = Path(args.out)
     scene = out / "scene"
     if not (scene / "sparse").exists():
         make_scene(scene)
         print(f"wrote the default synthetic scene to {scene}")
-    cfg = build_config(["demo"] + args.patch, args.set)
     t0 = time.perf_counter()
-    res = train_run(str(scene), out / "baseline", cfg, resume=True)
-    _print_results(res)
-    print(f"demo wall time {time.perf_counter() - t0:.1f} s; run folder {out / 'baseline'}")
+    try:
+        run_compare(str(scene), out, vs=args.vs or ["predict-gs"], lambdas=args.lambdas,
+                    common_patches=["demo"] + args.patch, sets=args.set, progress=True, plots=True)
+    except KeyboardInterrupt:
+        print(f"\ninterrupted: run ./run.sh demo again to resume", file=sys.stderr)
+        return 130
+    print(f"demo wall time {time.perf_counter() - t0:.1f} s; report in {out / 'report.md'}")
     return 0
 
 
@@ -318,9 +320,11 @@ def main(argv=None) -> int:
     _config_args(p)
     p.set_defaults(fn=cmd_compare)
 
-    p = sub.add_parser("demo", help="the main job on the embedded default scene")
+    p = sub.add_parser("demo", help="the main job: baseline vs Predict-GS on the embedded scene")
     p.add_argument("--out", default="runs/demo")
-    p.add_argument("--patch", action="append", default=[])
+    p.add_argument("--patch", action="append", default=[], help="extra patches for every run")
+    p.add_argument("--vs", action="append", default=[], help="contenders (default predict-gs)")
+    p.add_argument("--lambda", dest="lambdas", type=float, nargs="+", default=None)
     p.add_argument("--set", action="append", default=[])
     p.set_defaults(fn=cmd_demo)
 

@@ -35,7 +35,7 @@ def test_patches_apply_in_order_then_set(tmp_path):
 def test_named_patch_and_include():
     cfg = build_config(["demo"])
     assert cfg.train.rasterizer == "cpu"          # from the included cpu patch
-    assert cfg.train.iterations == 1500           # demo overrides cpu
+    assert cfg.train.iterations == 1000           # demo overrides cpu
     assert cfg.patches == ["cpu", "demo"]
 
 
