@@ -91,7 +91,8 @@ def kernels():
         from . import _kernels as K
 
         fns = (K.project_fwd, K.project_bwd, K.bin_pairs, K.raster_fwd, K.raster_bwd,
-               K.reduce_pairs, K._fwd_tile, K._bwd_tile)
+               K.reduce_pairs, K._fwd_tile3, K._fwd_tile_any, K._bwd_tile3,
+               K._bwd_tile_any)
         cold = not all(_cache_is_warm(f) for f in fns)
         if cold:
             print(COMPILE_MESSAGE, file=sys.stderr, flush=True)
