@@ -427,6 +427,55 @@ def project_bwd(means, quats, scales, viewmat, fx, fy, cx, cy, width, height, cl
 # Tile binning
 # --------------------------------------------------------------------------------------------
 
+@njit(cache=True)
+def depth_order(depths, ids):
+    """``ids`` sorted by ``depths[ids]``, front to back, stable (ties keep the order of ids).
+
+    LSD radix sort on the float64 bit patterns (mapped to order-preserving unsigned keys),
+    four 16-bit digits, skipping digits all keys share. O(M), far quicker than a comparison
+    sort for the 1e4-1e6 visible Gaussians of a view.
+
+    Args:
+        depths [N] float64 (no NaN), ids [M] int64 (increasing).
+    Returns:
+        [M] int64.
+    """
+    m = ids.shape[0]
+    keys = np.empty(m, np.uint64)
+    sign = np.uint64(1) << np.uint64(63)
+    for j in range(m):
+        z = depths[ids[j]] + 0.0  # -0.0 -> +0.0 (they compare equal)
+        b = np.uint64(np.int64(np.float64(z).view(np.int64)))
+        keys[j] = ~b if b & sign else b | sign
+    cur_ids = ids.copy()
+    cur_keys = keys
+    tmp_ids = np.empty(m, np.int64)
+    tmp_keys = np.empty(m, np.uint64)
+    count = np.empty(1 << 16, np.int64)
+    mask = np.uint64(0xFFFF)
+    for d in range(4):
+        shift = np.uint64(16 * d)
+        count[:] = 0
+        for j in range(m):
+            count[np.int64((cur_keys[j] >> shift) & mask)] += 1
+        if m == 0 or count[np.int64((cur_keys[0] >> shift) & mask)] == m:
+            continue  # every key has this digit
+        run = 0
+        for c in range(1 << 16):
+            n_c = count[c]
+            count[c] = run
+            run += n_c
+        for j in range(m):
+            c = np.int64((cur_keys[j] >> shift) & mask)
+            dst = count[c]
+            count[c] = dst + 1
+            tmp_ids[dst] = cur_ids[j]
+            tmp_keys[dst] = cur_keys[j]
+        cur_ids, tmp_ids = tmp_ids, cur_ids
+        cur_keys, tmp_keys = tmp_keys, cur_keys
+    return cur_ids
+
+
 @njit(parallel=True, cache=True)
 def bin_pairs(order, rect, tiles_x, n_tiles, n_chunks):
     """Lists of (tile, Gaussian) pairs, each tile's list in front-to-back order.

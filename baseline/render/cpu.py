@@ -91,7 +91,7 @@ def kernels():
         from . import _kernels as K
 
         fns = (K.project_fwd, K.project_bwd, K.bin_pairs, K.raster_fwd, K.raster_bwd,
-               K.reduce_pairs, K._fwd_tile3, K._fwd_tile_any, K._bwd_tile3,
+               K.reduce_pairs, K.depth_order, K._fwd_tile3, K._fwd_tile_any, K._bwd_tile3,
                K._bwd_tile_any)
         cold = not all(_cache_is_warm(f) for f in fns)
         if cold:
@@ -199,15 +199,11 @@ class _RasterState:
                  "pair_rows", "T", "last", "n_pairs")
 
 
-def _sorted_visible(depths: np.ndarray, radii: np.ndarray, rect: np.ndarray) -> np.ndarray:
+def _sorted_visible(K, depths: np.ndarray, radii: np.ndarray, rect: np.ndarray) -> np.ndarray:
     """[M] int64 ids of binned Gaussians, front to back (stable: ties keep index order)."""
     vis = np.nonzero((radii.max(axis=1) > 0) & (rect[:, 2] > rect[:, 0])
                      & (rect[:, 3] > rect[:, 1]))[0]
-    keys = np.ascontiguousarray(depths[vis], dtype=np.float64)
-    if keys.size and keys.min() > 0:
-        keys = keys.view(np.int64)  # same order for positive floats; integer sort is faster
-    order = vis[np.argsort(keys, kind="stable")]
-    return np.ascontiguousarray(order, dtype=np.int64)
+    return K.depth_order(depths, np.ascontiguousarray(vis, dtype=np.int64))
 
 
 def _raster_fwd_np(K, proj: _Proj, opac32, colors32, bg32, cam: _CamParams,
@@ -215,7 +211,7 @@ def _raster_fwd_np(K, proj: _Proj, opac32, colors32, bg32, cam: _CamParams,
     st = _RasterState()
     st.means2d = proj.means2d.astype(np.float32) if means2d32 is None else means2d32
     st.conics = proj.conics.astype(np.float32) if conics32 is None else conics32
-    order = _sorted_visible(proj.depths, proj.radii, proj.rect)
+    order = _sorted_visible(K, proj.depths, proj.radii, proj.rect)
     n_tiles = cam.tiles_x * cam.tiles_y
     h, w, c = cam.height, cam.width, colors32.shape[1]
     image = np.empty((h, w, c), np.float32)
