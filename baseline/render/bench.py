@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
 import platform
 import statistics
 import time
@@ -251,6 +252,13 @@ def format_raster_bench(rows: Sequence[dict], header: bool = True) -> str:
     return "\n".join(lines)
 
 
+def _loadavg() -> str:
+    try:
+        return " ".join(f"{v:.2f}" for v in os.getloadavg())
+    except OSError:  # not available on this platform
+        return "n/a"
+
+
 def _parse_sizes(text: str):
     sizes = []
     for part in text.split(","):
@@ -276,6 +284,8 @@ def main(argv=None) -> None:
     threads = args.threads if args.threads is not None else torch.get_num_threads()
     print(f"threads: {threads} (torch and CPU kernels); backends: "
           f"{', '.join(backends or available_backends())}", flush=True)
+    print(f"machine: {os.cpu_count()} CPU cores, load average {_loadavg()} before the run "
+          "(other processes compete for the cores)", flush=True)
     from .cpu import kernels
 
     kernels()  # compile / load the CPU kernels before timing (announced if compiling)
