@@ -258,8 +258,32 @@ def _raster_bwd_np(K, proj: _Proj, opac32, colors32, bg32, cam: _CamParams, st, 
     return v_means2d, v_conics, v_opac, v_colors
 
 
+_NP_DTYPES = {torch.float32: np.float32, torch.float64: np.float64}
+
+
 def _np(t: Tensor, dtype) -> np.ndarray:
-    return np.ascontiguousarray(t.detach().to("cpu", dtype).numpy())
+    """C-contiguous NumPy copy/view of ``t`` in ``dtype``.
+
+    Conversions are done by NumPy (single-threaded) rather than torch: a torch op on ~1e5
+    elements runs on torch's OpenMP pool, whose workers then spin for milliseconds and take
+    the cores from the numba kernels that follow (measured: kernels ~40 % slower).
+    """
+    a = t.detach()
+    if a.device.type != "cpu":
+        a = a.cpu()
+    if a.dtype not in _NP_DTYPES:  # e.g. float16 / bfloat16: let torch convert
+        a = a.to(dtype)
+    return np.ascontiguousarray(a.numpy(), dtype=_NP_DTYPES[dtype])
+
+
+def _torch(a: np.ndarray, like_dtype, device) -> Tensor:
+    """Tensor of dtype ``like_dtype`` on ``device`` from a NumPy array (converted by NumPy)."""
+    np_dtype = _NP_DTYPES.get(like_dtype)
+    if np_dtype is not None:
+        out = torch.from_numpy(np.ascontiguousarray(a, dtype=np_dtype))
+    else:
+        out = torch.from_numpy(np.ascontiguousarray(a)).to(like_dtype)
+    return out if device.type == "cpu" else out.to(device)
 
 
 class _Project(torch.autograd.Function):
@@ -279,11 +303,11 @@ class _Project(torch.autograd.Function):
         ctx.np_inputs = (m, q, s)
         ctx.meta = (means.dtype, means.device, quats.dtype, scales.dtype)
         dev = means.device
-        means2d = torch.from_numpy(proj.means2d).to(dev, means.dtype)
-        conics = torch.from_numpy(proj.conics).to(dev, means.dtype)
-        depths = torch.from_numpy(proj.depths).to(dev, means.dtype)
-        radii = torch.from_numpy(proj.radii).to(dev)
-        rect = torch.from_numpy(proj.rect).to(dev)
+        means2d = _torch(proj.means2d, means.dtype, dev)
+        conics = _torch(proj.conics, means.dtype, dev)
+        depths = _torch(proj.depths, means.dtype, dev)
+        radii = _torch(proj.radii, torch.int32, dev)
+        rect = _torch(proj.rect, torch.int32, dev)
         ctx.mark_non_differentiable(depths, radii, rect)
         return means2d, conics, depths, radii, rect
 
@@ -296,9 +320,8 @@ class _Project(torch.autograd.Function):
         v_means, v_quats, v_scales = _project_bwd_np(kernels(), m, q, s, ctx.cam, ctx.proj,
                                                      vm2, vc)
         dtype_m, dev, dtype_q, dtype_s = ctx.meta
-        return (torch.from_numpy(v_means).to(dev, dtype_m),
-                torch.from_numpy(v_quats).to(dev, dtype_q),
-                torch.from_numpy(v_scales).to(dev, dtype_s), None, None, None)
+        return (_torch(v_means, dtype_m, dev), _torch(v_quats, dtype_q, dev),
+                _torch(v_scales, dtype_s, dev), None, None, None)
 
 
 class _Rasterize(torch.autograd.Function):
@@ -318,8 +341,8 @@ class _Rasterize(torch.autograd.Function):
         ctx.meta = (means2d.dtype, conics.dtype, opacities.dtype, colors.dtype,
                     background.dtype, colors.device)
         dev = colors.device
-        image_t = torch.from_numpy(image).to(dev, colors.dtype)
-        alpha_t = torch.from_numpy(1.0 - st.T).to(dev, colors.dtype)
+        image_t = _torch(image, colors.dtype, dev)
+        alpha_t = _torch(1.0 - st.T, colors.dtype, dev)
         return image_t, alpha_t
 
     @staticmethod
@@ -333,10 +356,9 @@ class _Rasterize(torch.autograd.Function):
         dt_m, dt_c, dt_o, dt_col, dt_bg, dev = ctx.meta
         v_bg = None
         if ctx.needs_input_grad[4]:
-            v_bg = torch.from_numpy((st.T[..., None] * vi).sum(axis=(0, 1))).to(dev, dt_bg)
-        return (torch.from_numpy(v_m2d).to(dev, dt_m), torch.from_numpy(v_con).to(dev, dt_c),
-                torch.from_numpy(v_op).to(dev, dt_o), torch.from_numpy(v_col).to(dev, dt_col),
-                v_bg, None, None)
+            v_bg = _torch((st.T[..., None] * vi).sum(axis=(0, 1)), dt_bg, dev)
+        return (_torch(v_m2d, dt_m, dev), _torch(v_con, dt_c, dev), _torch(v_op, dt_o, dev),
+                _torch(v_col, dt_col, dev), v_bg, None, None)
 
 
 def rasterize_cpu(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor,
@@ -354,13 +376,14 @@ def rasterize_cpu(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tenso
     background = check_inputs(means, quats, scales, opacities, colors, camera, background)
     cam = _CamParams.from_camera(camera)
     holder: dict = {}
-    means2d, conics, depths, radii_xy, _rect = _Project.apply(means, quats, scales, opacities,
-                                                              cam, holder)
+    means2d, conics, depths, _radii_xy, _rect = _Project.apply(means, quats, scales,
+                                                               opacities, cam, holder)
     if means2d.requires_grad:
         means2d.retain_grad()
     proj = holder["proj"]
     image, alpha = _Rasterize.apply(means2d, conics, opacities, colors, background, proj, cam)
-    radii = radii_xy.max(dim=1).values.to(torch.int32) if radii_xy.numel() else \
-        torch.zeros(0, dtype=torch.int32, device=means.device)
+    radii_np = proj.radii.max(axis=1, initial=0)
+    radii = _torch(radii_np, torch.int32, means.device)
+    visible = _torch(radii_np > 0, torch.bool, means.device)
     return RenderOutput(image=image, alpha=alpha, means2d=means2d, radii=radii,
-                        visible=radii > 0, depths=depths, backend="cpu")
+                        visible=visible, depths=depths, backend="cpu")
