@@ -519,7 +519,8 @@ def test_bench_rows():
     rows = run_raster_bench(sizes=((300, 40, 30), (400, 48, 32)), backends=["cpu", "reference"],
                             threads=1, repeats=1, reference_max_pairs=50)
     assert len(rows) == 4
-    keys = {"n", "width", "height", "backend", "threads", "device", "repeats", "tile_pairs",
+    keys = {"n", "width", "height", "backend", "threads", "torch_threads", "device", "repeats",
+            "tile_pairs",
             "pairs", "forward_s", "forward_backward_s", "forward_median_s",
             "forward_backward_median_s", "pairs_per_s", "ratio_forward",
             "ratio_forward_backward", "skipped"}
