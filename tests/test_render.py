@@ -223,6 +223,20 @@ def test_medium_scene_many_tiles():
     assert_grads_close(g1, g2)
 
 
+def test_depth_order_radix_sort_is_stable():
+    import numpy as np
+
+    K = cpu_backend.kernels()
+    rng = np.random.default_rng(0)
+    d = np.concatenate([rng.random(3000) * 5, -rng.random(100), [0.0, -0.0, 1e300, 2.0, 2.0]])
+    d[::7] = d[3]  # many ties
+    ids = np.arange(d.size, dtype=np.int64)
+    assert np.array_equal(K.depth_order(d, ids), np.argsort(d, kind="stable"))
+    sub = np.sort(rng.choice(d.size, 500, replace=False)).astype(np.int64)
+    assert np.array_equal(K.depth_order(d, sub), sub[np.argsort(d[sub], kind="stable")])
+    assert K.depth_order(d, np.zeros(0, np.int64)).shape == (0,)
+
+
 def test_background_gradient():
     ts, cam = random_scene(60, 20, 14, seed=3, opacity=(0.05, 0.5))
     wts = loss_weights(cam, seed=3)
@@ -505,8 +519,10 @@ def test_bench_rows():
     rows = run_raster_bench(sizes=((300, 40, 30), (400, 48, 32)), backends=["cpu", "reference"],
                             threads=1, repeats=1, reference_max_pairs=50)
     assert len(rows) == 4
-    keys = {"n", "width", "height", "backend", "threads", "device", "repeats", "tile_pairs",
-            "pairs", "forward_s", "forward_backward_s", "pairs_per_s", "ratio_forward",
+    keys = {"n", "width", "height", "backend", "threads", "torch_threads", "device", "repeats",
+            "tile_pairs",
+            "pairs", "forward_s", "forward_backward_s", "forward_median_s",
+            "forward_backward_median_s", "pairs_per_s", "ratio_forward",
             "ratio_forward_backward", "skipped"}
     for r in rows:
         assert keys <= set(r)

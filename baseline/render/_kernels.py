@@ -427,6 +427,55 @@ def project_bwd(means, quats, scales, viewmat, fx, fy, cx, cy, width, height, cl
 # Tile binning
 # --------------------------------------------------------------------------------------------
 
+@njit(cache=True)
+def depth_order(depths, ids):
+    """``ids`` sorted by ``depths[ids]``, front to back, stable (ties keep the order of ids).
+
+    LSD radix sort on the float64 bit patterns (mapped to order-preserving unsigned keys),
+    four 16-bit digits, skipping digits all keys share. O(M), far quicker than a comparison
+    sort for the 1e4-1e6 visible Gaussians of a view.
+
+    Args:
+        depths [N] float64 (no NaN), ids [M] int64 (increasing).
+    Returns:
+        [M] int64.
+    """
+    m = ids.shape[0]
+    keys = np.empty(m, np.uint64)
+    sign = np.uint64(1) << np.uint64(63)
+    for j in range(m):
+        z = depths[ids[j]] + 0.0  # -0.0 -> +0.0 (they compare equal)
+        b = np.uint64(np.int64(np.float64(z).view(np.int64)))
+        keys[j] = ~b if b & sign else b | sign
+    cur_ids = ids.copy()
+    cur_keys = keys
+    tmp_ids = np.empty(m, np.int64)
+    tmp_keys = np.empty(m, np.uint64)
+    count = np.empty(1 << 16, np.int64)
+    mask = np.uint64(0xFFFF)
+    for d in range(4):
+        shift = np.uint64(16 * d)
+        count[:] = 0
+        for j in range(m):
+            count[np.int64((cur_keys[j] >> shift) & mask)] += 1
+        if m == 0 or count[np.int64((cur_keys[0] >> shift) & mask)] == m:
+            continue  # every key has this digit
+        run = 0
+        for c in range(1 << 16):
+            n_c = count[c]
+            count[c] = run
+            run += n_c
+        for j in range(m):
+            c = np.int64((cur_keys[j] >> shift) & mask)
+            dst = count[c]
+            count[c] = dst + 1
+            tmp_ids[dst] = cur_ids[j]
+            tmp_keys[dst] = cur_keys[j]
+        cur_ids, tmp_ids = tmp_ids, cur_ids
+        cur_keys, tmp_keys = tmp_keys, cur_keys
+    return cur_ids
+
+
 @njit(parallel=True, cache=True)
 def bin_pairs(order, rect, tiles_x, n_tiles, n_chunks):
     """Lists of (tile, Gaussian) pairs, each tile's list in front-to-back order.
@@ -530,22 +579,32 @@ def raster_fwd(means2d, conics, opac, colors, background, radii, tile_start, pai
     """
     n_tiles = tile_start.shape[0] - 1
     for t in prange(n_tiles):
-        _fwd_tile(t, means2d, conics, opac, colors, background, radii, tile_start, pair_gauss,
-                  width, height, tiles_x, out_image, out_T, out_last, out_rows)
+        if colors.shape[1] == 3:
+            _fwd_tile3(t, means2d, conics, opac, colors, background, radii, tile_start,
+                       pair_gauss, width, height, tiles_x, out_image, out_T, out_last, out_rows)
+        else:
+            _fwd_tile_any(t, means2d, conics, opac, colors, background, radii, tile_start,
+                          pair_gauss, width, height, tiles_x, out_image, out_T, out_last,
+                          out_rows)
 
 
 @njit(cache=True, fastmath=_FM, error_model="numpy")
-def _fwd_tile(t, means2d, conics, opac, colors, background, radii, tile_start, pair_gauss,
-              width, height, tiles_x, out_image, out_T, out_last, out_rows):
-    """One tile of :func:`raster_fwd`. (A separate function: inside a prange body numba
-    passes the offsets as runtime values and LLVM no longer vectorizes the row loops.)"""
-    n_ch = colors.shape[1]
+def _fwd_tile3(t, means2d, conics, opac, colors, background, radii, tile_start, pair_gauss,
+               width, height, tiles_x, out_image, out_T, out_last, out_rows):
+    """One tile of :func:`raster_fwd` for C = 3.
+
+    A separate function because inside a prange body numba passes the state offsets as
+    runtime values and LLVM no longer vectorizes the row loops; for the same reason the
+    channel count is a literal here and the generic-C code lives in :func:`_fwd_tile_any`.
+    Per-row bookkeeping uses boolean any/all reductions (cheap mask tests) rather than float
+    sums (horizontal adds after every row)."""
+    n_ch = 3  # a literal: the state offsets below must be compile-time constants
     npix = _TILE * _TILE
-    o_T = 0
-    o_D = npix
-    o_L = 2 * npix
-    o_A = 3 * npix
-    o_W = (3 + n_ch) * npix
+    o_T = 0  # transmittance
+    o_D = npix  # done flag (1.0 once the pixel stopped; padding starts done)
+    o_L = 2 * npix  # last contributor, tile-local index as float32 (-1: none)
+    o_A = 3 * npix  # colour accumulators, channel-major
+    o_W = (3 + n_ch) * npix  # weights of the current row (generic path)
     ty = t // tiles_x
     tx = t - ty * tiles_x
     x0 = tx * _TILE
@@ -554,16 +613,12 @@ def _fwd_tile(t, means2d, conics, opac, colors, background, radii, tile_start, p
     y1 = min(y0 + _TILE, height)
     k0 = tile_start[t]
     S = np.zeros(o_W + _TILE, np.float32)
-    row_done = np.zeros(_TILE, np.float32)
-    n_done = _F0
     for i in range(npix):
         S[o_T + i] = _F1
         S[o_L + i] = np.float32(-1.0)
         r = i // _TILE
-        if y0 + r >= height or x0 + (i - r * _TILE) >= width:  # padding: done
+        if y0 + r >= height or x0 + (i - r * _TILE) >= width:
             S[o_D + i] = _F1
-            row_done[r] += _F1
-            n_done += _F1
     for k in range(k0, tile_start[t + 1]):
         g = pair_gauss[k]
         mx = means2d[g, 0]
@@ -576,69 +631,146 @@ def _fwd_tile(t, means2d, conics, opac, colors, background, radii, tile_start, p
         dx0 = mx - (np.float32(x0) + _FHALF)
         gy0, gy1 = _row_span(my, np.float32(radii[g, 1]), y0, y1)
         rmask = 0
+        stopped = False
+        c0 = colors[g, 0]
+        c1 = colors[g, 1]
+        c2 = colors[g, 2]
         for py in range(gy0, gy1):
             r = py - y0
-            if row_done[r] >= _TILE:
-                continue
-            dy = my - (np.float32(py) + _FHALF)
             off = r * _TILE
             R = S[off:]  # one view, constant offsets + j >= 0: no wraparound, vectorizes
+            all_done = True
+            for j in range(_TILE):
+                all_done &= R[o_D + j] != _F0
+            if all_done:
+                continue
+            dy = my - (np.float32(py) + _FHALF)
             half_c_dy2 = _FHALF * cc * dy * dy
             b_dy = cb * dy
-            cnt = _F0
-            ncon = _F0
-            if n_ch == 3:
-                c0 = colors[g, 0]
-                c1 = colors[g, 1]
-                c2 = colors[g, 2]
-                for j in range(_TILE):
-                    dx = dx0 - np.float32(j)
-                    power = _FHALF * ca * dx * dx + half_c_dy2 + b_dy * dx
-                    alpha = min(_ALPHA_MAX, o * _exp_neg(power))
-                    ti = R[o_T + j]
-                    nt = ti * (_F1 - alpha)
-                    ok = (power >= _F0) & (alpha >= _ALPHA_MIN) & (R[o_D + j] == _F0)
-                    stop = ok & (nt <= _T_MIN)
-                    contrib = ok & (nt > _T_MIN)
-                    w = alpha * ti if contrib else _F0
-                    R[o_A + j] += w * c0
-                    R[o_A + npix + j] += w * c1
-                    R[o_A + 2 * npix + j] += w * c2
-                    R[o_T + j] = nt if contrib else ti
-                    R[o_L + j] = kf if contrib else R[o_L + j]
-                    sv = _F1 if stop else _F0
-                    R[o_D + j] += sv
-                    cnt += sv
-                    ncon += _F1 if contrib else _F0
-            else:
-                for j in range(_TILE):
-                    dx = dx0 - np.float32(j)
-                    power = _FHALF * ca * dx * dx + half_c_dy2 + b_dy * dx
-                    alpha = min(_ALPHA_MAX, o * _exp_neg(power))
-                    ti = R[o_T + j]
-                    nt = ti * (_F1 - alpha)
-                    ok = (power >= _F0) & (alpha >= _ALPHA_MIN) & (R[o_D + j] == _F0)
-                    stop = ok & (nt <= _T_MIN)
-                    contrib = ok & (nt > _T_MIN)
-                    S[o_W + j] = alpha * ti if contrib else _F0
-                    R[o_T + j] = nt if contrib else ti
-                    R[o_L + j] = kf if contrib else R[o_L + j]
-                    sv = _F1 if stop else _F0
-                    R[o_D + j] += sv
-                    cnt += sv
-                    ncon += _F1 if contrib else _F0
-                for ch in range(n_ch):
-                    col = colors[g, ch]
-                    a_v = S[o_A + ch * npix + off:]
-                    for j in range(_TILE):
-                        a_v[j] += S[o_W + j] * col
-            row_done[r] += cnt
-            n_done += cnt
-            if ncon > _F0:
+            any_contrib = False
+            any_stop = False
+            for j in range(_TILE):
+                dx = dx0 - np.float32(j)
+                power = _FHALF * ca * dx * dx + half_c_dy2 + b_dy * dx
+                alpha = min(_ALPHA_MAX, o * _exp_neg(power))
+                ti = R[o_T + j]
+                nt = ti * (_F1 - alpha)
+                ok = (power >= _F0) & (alpha >= _ALPHA_MIN) & (R[o_D + j] == _F0)
+                stop = ok & (nt <= _T_MIN)
+                contrib = ok & (nt > _T_MIN)
+                w = alpha * ti if contrib else _F0
+                R[o_A + j] += w * c0
+                R[o_A + npix + j] += w * c1
+                R[o_A + 2 * npix + j] += w * c2
+                R[o_T + j] = nt if contrib else ti
+                R[o_L + j] = kf if contrib else R[o_L + j]
+                R[o_D + j] = _F1 if stop else R[o_D + j]
+                any_contrib |= contrib
+                any_stop |= stop
+            if any_contrib:
                 rmask |= 1 << r
+            stopped |= any_stop
         out_rows[k] = rmask
-        if n_done >= npix:
-            break
+        if stopped:  # rare (once per pixel): is the whole tile done?
+            all_done = True
+            for i in range(npix):
+                all_done &= S[o_D + i] != _F0
+            if all_done:
+                break
+    for py in range(y0, y1):
+        for px in range(x0, x1):
+            i = (py - y0) * _TILE + px - x0
+            ti = S[o_T + i]
+            for ch in range(n_ch):
+                out_image[py, px, ch] = S[o_A + ch * npix + i] + ti * background[ch]
+            out_T[py, px] = ti
+            lf = S[o_L + i]
+            out_last[py, px] = k0 + np.int64(lf) if lf >= _F0 else -1
+
+
+@njit(cache=True, fastmath=_FM, error_model="numpy")
+def _fwd_tile_any(t, means2d, conics, opac, colors, background, radii, tile_start, pair_gauss,
+                  width, height, tiles_x, out_image, out_T, out_last, out_rows):
+    """One tile of :func:`raster_fwd` for any channel count (weights of a row go through a
+    scratch row, then one pass per channel; see :func:`_fwd_tile3`)."""
+    n_ch = colors.shape[1]
+    npix = _TILE * _TILE
+    o_T = 0  # transmittance
+    o_D = npix  # done flag (1.0 once the pixel stopped; padding starts done)
+    o_L = 2 * npix  # last contributor, tile-local index as float32 (-1: none)
+    o_A = 3 * npix  # colour accumulators, channel-major
+    o_W = (3 + n_ch) * npix  # weights of the current row (generic path)
+    ty = t // tiles_x
+    tx = t - ty * tiles_x
+    x0 = tx * _TILE
+    y0 = ty * _TILE
+    x1 = min(x0 + _TILE, width)
+    y1 = min(y0 + _TILE, height)
+    k0 = tile_start[t]
+    S = np.zeros(o_W + _TILE, np.float32)
+    for i in range(npix):
+        S[o_T + i] = _F1
+        S[o_L + i] = np.float32(-1.0)
+        r = i // _TILE
+        if y0 + r >= height or x0 + (i - r * _TILE) >= width:
+            S[o_D + i] = _F1
+    for k in range(k0, tile_start[t + 1]):
+        g = pair_gauss[k]
+        mx = means2d[g, 0]
+        my = means2d[g, 1]
+        ca = conics[g, 0]
+        cb = conics[g, 1]
+        cc = conics[g, 2]
+        o = opac[g]
+        kf = np.float32(k - k0)
+        dx0 = mx - (np.float32(x0) + _FHALF)
+        gy0, gy1 = _row_span(my, np.float32(radii[g, 1]), y0, y1)
+        rmask = 0
+        stopped = False
+        for py in range(gy0, gy1):
+            r = py - y0
+            off = r * _TILE
+            R = S[off:]  # one view, constant offsets + j >= 0: no wraparound, vectorizes
+            all_done = True
+            for j in range(_TILE):
+                all_done &= R[o_D + j] != _F0
+            if all_done:
+                continue
+            dy = my - (np.float32(py) + _FHALF)
+            half_c_dy2 = _FHALF * cc * dy * dy
+            b_dy = cb * dy
+            any_contrib = False
+            any_stop = False
+            for j in range(_TILE):
+                dx = dx0 - np.float32(j)
+                power = _FHALF * ca * dx * dx + half_c_dy2 + b_dy * dx
+                alpha = min(_ALPHA_MAX, o * _exp_neg(power))
+                ti = R[o_T + j]
+                nt = ti * (_F1 - alpha)
+                ok = (power >= _F0) & (alpha >= _ALPHA_MIN) & (R[o_D + j] == _F0)
+                stop = ok & (nt <= _T_MIN)
+                contrib = ok & (nt > _T_MIN)
+                S[o_W + j] = alpha * ti if contrib else _F0
+                R[o_T + j] = nt if contrib else ti
+                R[o_L + j] = kf if contrib else R[o_L + j]
+                R[o_D + j] = _F1 if stop else R[o_D + j]
+                any_contrib |= contrib
+                any_stop |= stop
+            for ch in range(n_ch):
+                col = colors[g, ch]
+                a_v = S[o_A + ch * npix + off:]
+                for j in range(_TILE):
+                    a_v[j] += S[o_W + j] * col
+            if any_contrib:
+                rmask |= 1 << r
+            stopped |= any_stop
+        out_rows[k] = rmask
+        if stopped:  # rare (once per pixel): is the whole tile done?
+            all_done = True
+            for i in range(npix):
+                all_done &= S[o_D + i] != _F0
+            if all_done:
+                break
     for py in range(y0, y1):
         for px in range(x0, x1):
             i = (py - y0) * _TILE + px - x0
@@ -673,17 +805,144 @@ def raster_bwd(means2d, conics, opac, colors, background, radii, tile_start, pai
     """
     n_tiles = tile_start.shape[0] - 1
     for t in prange(n_tiles):
-        _bwd_tile(t, means2d, conics, opac, colors, background, radii, tile_start, pair_gauss,
-                  pair_slot, pair_rows, width, height, tiles_x, T_final, last, v_image,
-                  v_alpha, out_pair)
+        if colors.shape[1] == 3:
+            _bwd_tile3(t, means2d, conics, opac, colors, background, radii, tile_start,
+                       pair_gauss, pair_slot, pair_rows, width, height, tiles_x, T_final, last,
+                       v_image, v_alpha, out_pair)
+        else:
+            _bwd_tile_any(t, means2d, conics, opac, colors, background, radii, tile_start,
+                          pair_gauss, pair_slot, pair_rows, width, height, tiles_x, T_final,
+                          last, v_image, v_alpha, out_pair)
 
 
 @njit(cache=True, fastmath=_FM, error_model="numpy")
-def _bwd_tile(t, means2d, conics, opac, colors, background, radii, tile_start, pair_gauss,
+def _bwd_tile3(t, means2d, conics, opac, colors, background, radii, tile_start, pair_gauss,
               pair_slot, pair_rows, width, height, tiles_x, T_final, last, v_image, v_alpha,
               out_pair):
-    """One tile of :func:`raster_bwd` (a separate function for vectorization, see
-    :func:`_fwd_tile`)."""
+    """One tile of :func:`raster_bwd` for C = 3 (fused single-pass rows).
+
+    A separate function for vectorization (see :func:`_fwd_tile3`; the generic-C code in the
+    same function also stopped LLVM from vectorizing this loop). The gradient sums of a pair
+    are kept per lane (``G``, 16 partial sums per quantity) and reduced once per pair:
+    horizontal reductions after every row made the row loop twice as slow."""
+    n_ch = 3  # a literal: the state offsets below must be compile-time constants
+    npix = _TILE * _TILE
+    o_T = 0
+    o_L = npix  # last contributor, tile-local index as float32 (-1: none)
+    o_E = 2 * npix  # T_final * (v_alpha - <background, v_image>)
+    o_V = 3 * npix  # v_image, channel-major
+    o_B = (3 + n_ch) * npix  # colour accumulated behind, channel-major
+    o_R = (3 + 2 * n_ch) * npix  # row scratch (generic path): ok, fac, ra, t, s1, s2, vis
+    k0 = tile_start[t]
+    if tile_start[t + 1] == k0:
+        return
+    ty = t // tiles_x
+    tx = t - ty * tiles_x
+    x0 = tx * _TILE
+    y0 = ty * _TILE
+    x1 = min(x0 + _TILE, width)
+    y1 = min(y0 + _TILE, height)
+    S = np.zeros(o_R + 7 * _TILE, np.float32)
+    # lane-wise gradient sums of the current pair: mean2d x, y, conic A, B, C, opacity, colours
+    n_g = 6 + n_ch
+    G = np.zeros(n_g * _TILE, np.float32)
+    for i in range(npix):
+        S[o_T + i] = _F1
+        S[o_L + i] = np.float32(-1.0)
+    k_max = k0 - 1
+    for py in range(y0, y1):
+        r = py - y0
+        for px in range(x0, x1):
+            i = r * _TILE + px - x0
+            tf = T_final[py, px]
+            S[o_T + i] = tf
+            lk = last[py, px]
+            if lk >= k0:
+                S[o_L + i] = np.float32(lk - k0)
+            k_max = max(k_max, lk)
+            bdot = _F0
+            for ch in range(n_ch):
+                gv = v_image[py, px, ch]
+                S[o_V + ch * npix + i] = gv
+                bdot += background[ch] * gv
+            S[o_E + i] = tf * (v_alpha[py, px] - bdot)
+    for k in range(k_max, k0 - 1, -1):
+        rmask = pair_rows[k]
+        if rmask == 0:
+            continue
+        g = pair_gauss[k]
+        mx = means2d[g, 0]
+        my = means2d[g, 1]
+        ca = conics[g, 0]
+        cb = conics[g, 1]
+        cc = conics[g, 2]
+        o = opac[g]
+        kf = np.float32(k - k0)
+        dx0 = mx - (np.float32(x0) + _FHALF)
+        c0 = colors[g, 0]
+        c1 = colors[g, 1]
+        c2 = colors[g, 2]
+        gy0, gy1 = _row_span(my, np.float32(radii[g, 1]), y0, y1)
+        for q in range(n_g * _TILE):
+            G[q] = _F0
+        for py in range(gy0, gy1):
+            r = py - y0
+            if (rmask >> r) & 1 == 0:
+                continue
+            dy = my - (np.float32(py) + _FHALF)
+            off = r * _TILE
+            R = S[off:]  # one view, constant offsets + j >= 0: no wraparound, vectorizes
+            half_c_dy2 = _FHALF * cc * dy * dy
+            b_dy = cb * dy
+            for j in range(_TILE):
+                dx = dx0 - np.float32(j)
+                power = _FHALF * ca * dx * dx + half_c_dy2 + b_dy * dx
+                vis = _exp_neg(power)
+                alpha = min(_ALPHA_MAX, o * vis)
+                ok = (power >= _F0) & (alpha >= _ALPHA_MIN) & (kf <= R[o_L + j])
+                ra = _F1 / (_F1 - alpha)
+                t_old = R[o_T + j]
+                tn = t_old * ra if ok else t_old
+                R[o_T + j] = tn
+                fac = alpha * tn if ok else _F0
+                g0 = R[o_V + j]
+                g1 = R[o_V + npix + j]
+                g2 = R[o_V + 2 * npix + j]
+                b0 = R[o_B + j]
+                b1 = R[o_B + npix + j]
+                b2 = R[o_B + 2 * npix + j]
+                s1 = c0 * g0 + c1 * g1 + c2 * g2
+                s2 = b0 * g0 + b1 * g1 + b2 * g2
+                R[o_B + j] = b0 + c0 * fac
+                R[o_B + npix + j] = b1 + c1 * fac
+                R[o_B + 2 * npix + j] = b2 + c2 * fac
+                # the 0.999 clamp blocks gradients to opacity and the Gaussian's shape
+                on = ok & (o * vis <= _ALPHA_MAX)
+                v_al = (tn * s1 - ra * s2 + ra * R[o_E + j]) if on else _F0
+                v_sig = -o * vis * v_al
+                G[j] += v_sig * (ca * dx + cb * dy)
+                G[_TILE + j] += v_sig * (cb * dx + cc * dy)
+                G[2 * _TILE + j] += _FHALF * dx * dx * v_sig
+                G[3 * _TILE + j] += dx * dy * v_sig
+                G[4 * _TILE + j] += _FHALF * dy * dy * v_sig
+                G[5 * _TILE + j] += vis * v_al
+                G[6 * _TILE + j] += fac * g0
+                G[7 * _TILE + j] += fac * g1
+                G[8 * _TILE + j] += fac * g2
+        row = pair_slot[k]
+        for q in range(n_g):
+            acc = _F0
+            for j in range(_TILE):
+                acc += G[q * _TILE + j]
+            out_pair[row, q] = acc
+
+
+@njit(cache=True, fastmath=_FM, error_model="numpy")
+def _bwd_tile_any(t, means2d, conics, opac, colors, background, radii, tile_start, pair_gauss,
+              pair_slot, pair_rows, width, height, tiles_x, T_final, last, v_image, v_alpha,
+              out_pair):
+    """One tile of :func:`raster_bwd` for any C (three passes per row through scratch rows;
+    see :func:`_bwd_tile3`)."""
     n_ch = colors.shape[1]
     npix = _TILE * _TILE
     o_T = 0
@@ -702,7 +961,9 @@ def _bwd_tile(t, means2d, conics, opac, colors, background, radii, tile_start, p
     x1 = min(x0 + _TILE, width)
     y1 = min(y0 + _TILE, height)
     S = np.zeros(o_R + 7 * _TILE, np.float32)
-    row_last = np.full(_TILE, -1, np.int64)
+    # lane-wise gradient sums of the current pair: mean2d x, y, conic A, B, C, opacity, colours
+    n_g = 6 + n_ch
+    G = np.zeros(n_g * _TILE, np.float32)
     for i in range(npix):
         S[o_T + i] = _F1
         S[o_L + i] = np.float32(-1.0)
@@ -716,15 +977,13 @@ def _bwd_tile(t, means2d, conics, opac, colors, background, radii, tile_start, p
             lk = last[py, px]
             if lk >= k0:
                 S[o_L + i] = np.float32(lk - k0)
-            row_last[r] = max(row_last[r], lk)
+            k_max = max(k_max, lk)
             bdot = _F0
             for ch in range(n_ch):
                 gv = v_image[py, px, ch]
                 S[o_V + ch * npix + i] = gv
                 bdot += background[ch] * gv
             S[o_E + i] = tf * (v_alpha[py, px] - bdot)
-        k_max = max(k_max, row_last[r])
-    vcol = np.empty(n_ch, np.float32)
     for k in range(k_max, k0 - 1, -1):
         rmask = pair_rows[k]
         if rmask == 0:
@@ -739,17 +998,8 @@ def _bwd_tile(t, means2d, conics, opac, colors, background, radii, tile_start, p
         kf = np.float32(k - k0)
         dx0 = mx - (np.float32(x0) + _FHALF)
         gy0, gy1 = _row_span(my, np.float32(radii[g, 1]), y0, y1)
-        v_mx = _F0
-        v_my = _F0
-        v_ca = _F0
-        v_cb = _F0
-        v_cc = _F0
-        v_o = _F0
-        vc0 = _F0
-        vc1 = _F0
-        vc2 = _F0
-        for ch in range(n_ch):
-            vcol[ch] = _F0
+        for q in range(n_g * _TILE):
+            G[q] = _F0
         for py in range(gy0, gy1):
             r = py - y0
             if (rmask >> r) & 1 == 0:
@@ -759,103 +1009,54 @@ def _bwd_tile(t, means2d, conics, opac, colors, background, radii, tile_start, p
             R = S[off:]  # one view, constant offsets + j >= 0: no wraparound, vectorizes
             half_c_dy2 = _FHALF * cc * dy * dy
             b_dy = cb * dy
-            if n_ch == 3:
-                c0 = colors[g, 0]
-                c1 = colors[g, 1]
-                c2 = colors[g, 2]
-                for j in range(_TILE):
-                    dx = dx0 - np.float32(j)
-                    power = _FHALF * ca * dx * dx + half_c_dy2 + b_dy * dx
-                    vis = _exp_neg(power)
-                    alpha = min(_ALPHA_MAX, o * vis)
-                    ok = (power >= _F0) & (alpha >= _ALPHA_MIN) & (kf <= R[o_L + j])
-                    ra = _F1 / (_F1 - alpha)
-                    t_old = R[o_T + j]
-                    tn = t_old * ra if ok else t_old
-                    R[o_T + j] = tn
-                    fac = alpha * tn if ok else _F0
-                    g0 = R[o_V + j]
-                    g1 = R[o_V + npix + j]
-                    g2 = R[o_V + 2 * npix + j]
-                    b0 = R[o_B + j]
-                    b1 = R[o_B + npix + j]
-                    b2 = R[o_B + 2 * npix + j]
-                    s1 = c0 * g0 + c1 * g1 + c2 * g2
-                    s2 = b0 * g0 + b1 * g1 + b2 * g2
-                    vc0 += fac * g0
-                    vc1 += fac * g1
-                    vc2 += fac * g2
-                    R[o_B + j] = b0 + c0 * fac
-                    R[o_B + npix + j] = b1 + c1 * fac
-                    R[o_B + 2 * npix + j] = b2 + c2 * fac
-                    # the 0.999 clamp blocks gradients to opacity and the Gaussian's shape
-                    on = ok & (o * vis <= _ALPHA_MAX)
-                    v_al = (tn * s1 - ra * s2 + ra * R[o_E + j]) if on else _F0
-                    v_sig = -o * vis * v_al
-                    v_ca += _FHALF * dx * dx * v_sig
-                    v_cb += dx * dy * v_sig
-                    v_cc += _FHALF * dy * dy * v_sig
-                    v_mx += v_sig * (ca * dx + cb * dy)
-                    v_my += v_sig * (cb * dx + cc * dy)
-                    v_o += vis * v_al
-            else:
-                for j in range(_TILE):
-                    dx = dx0 - np.float32(j)
-                    power = _FHALF * ca * dx * dx + half_c_dy2 + b_dy * dx
-                    vis = _exp_neg(power)
-                    alpha = min(_ALPHA_MAX, o * vis)
-                    ok = (power >= _F0) & (alpha >= _ALPHA_MIN) & (kf <= R[o_L + j])
-                    ra = _F1 / (_F1 - alpha)
-                    t_old = R[o_T + j]
-                    tn = t_old * ra if ok else t_old
-                    R[o_T + j] = tn
-                    S[o_R + j] = _F1 if ok & (o * vis <= _ALPHA_MAX) else _F0
-                    S[o_R + _TILE + j] = alpha * tn if ok else _F0
-                    S[o_R + 2 * _TILE + j] = ra
-                    S[o_R + 3 * _TILE + j] = tn
-                    S[o_R + 4 * _TILE + j] = _F0
-                    S[o_R + 5 * _TILE + j] = _F0
-                    S[o_R + 6 * _TILE + j] = vis
-                for ch in range(n_ch):
-                    col = colors[g, ch]
-                    v_v = S[o_V + ch * npix + off:]
-                    b_v = S[o_B + ch * npix + off:]
-                    acc_c = _F0
-                    for j in range(_TILE):
-                        gv = v_v[j]
-                        fac = S[o_R + _TILE + j]
-                        S[o_R + 4 * _TILE + j] += col * gv
-                        S[o_R + 5 * _TILE + j] += b_v[j] * gv
-                        acc_c += fac * gv
-                        b_v[j] += col * fac
-                    vcol[ch] += acc_c
-                for j in range(_TILE):
-                    dx = dx0 - np.float32(j)
-                    ra = S[o_R + 2 * _TILE + j]
-                    v_al = S[o_R + j] * (S[o_R + 3 * _TILE + j] * S[o_R + 4 * _TILE + j]
-                                         - ra * S[o_R + 5 * _TILE + j] + ra * R[o_E + j])
-                    vis = S[o_R + 6 * _TILE + j]
-                    v_sig = -o * vis * v_al
-                    v_ca += _FHALF * dx * dx * v_sig
-                    v_cb += dx * dy * v_sig
-                    v_cc += _FHALF * dy * dy * v_sig
-                    v_mx += v_sig * (ca * dx + cb * dy)
-                    v_my += v_sig * (cb * dx + cc * dy)
-                    v_o += vis * v_al
-        row = pair_slot[k]
-        out_pair[row, 0] = v_mx
-        out_pair[row, 1] = v_my
-        out_pair[row, 2] = v_ca
-        out_pair[row, 3] = v_cb
-        out_pair[row, 4] = v_cc
-        out_pair[row, 5] = v_o
-        if n_ch == 3:
-            out_pair[row, 6] = vc0
-            out_pair[row, 7] = vc1
-            out_pair[row, 8] = vc2
-        else:
+            for j in range(_TILE):
+                dx = dx0 - np.float32(j)
+                power = _FHALF * ca * dx * dx + half_c_dy2 + b_dy * dx
+                vis = _exp_neg(power)
+                alpha = min(_ALPHA_MAX, o * vis)
+                ok = (power >= _F0) & (alpha >= _ALPHA_MIN) & (kf <= R[o_L + j])
+                ra = _F1 / (_F1 - alpha)
+                t_old = R[o_T + j]
+                tn = t_old * ra if ok else t_old
+                R[o_T + j] = tn
+                S[o_R + j] = _F1 if ok & (o * vis <= _ALPHA_MAX) else _F0
+                S[o_R + _TILE + j] = alpha * tn if ok else _F0
+                S[o_R + 2 * _TILE + j] = ra
+                S[o_R + 3 * _TILE + j] = tn
+                S[o_R + 4 * _TILE + j] = _F0
+                S[o_R + 5 * _TILE + j] = _F0
+                S[o_R + 6 * _TILE + j] = vis
             for ch in range(n_ch):
-                out_pair[row, 6 + ch] = vcol[ch]
+                col = colors[g, ch]
+                v_v = S[o_V + ch * npix + off:]
+                b_v = S[o_B + ch * npix + off:]
+                g_v = G[(6 + ch) * _TILE:]
+                for j in range(_TILE):
+                    gv = v_v[j]
+                    fac = S[o_R + _TILE + j]
+                    S[o_R + 4 * _TILE + j] += col * gv
+                    S[o_R + 5 * _TILE + j] += b_v[j] * gv
+                    g_v[j] += fac * gv
+                    b_v[j] += col * fac
+            for j in range(_TILE):
+                dx = dx0 - np.float32(j)
+                ra = S[o_R + 2 * _TILE + j]
+                v_al = S[o_R + j] * (S[o_R + 3 * _TILE + j] * S[o_R + 4 * _TILE + j]
+                                     - ra * S[o_R + 5 * _TILE + j] + ra * R[o_E + j])
+                vis = S[o_R + 6 * _TILE + j]
+                v_sig = -o * vis * v_al
+                G[j] += v_sig * (ca * dx + cb * dy)
+                G[_TILE + j] += v_sig * (cb * dx + cc * dy)
+                G[2 * _TILE + j] += _FHALF * dx * dx * v_sig
+                G[3 * _TILE + j] += dx * dy * v_sig
+                G[4 * _TILE + j] += _FHALF * dy * dy * v_sig
+                G[5 * _TILE + j] += vis * v_al
+        row = pair_slot[k]
+        for q in range(n_g):
+            acc = _F0
+            for j in range(_TILE):
+                acc += G[q * _TILE + j]
+            out_pair[row, q] = acc
 
 
 @njit(parallel=True, cache=True)

@@ -91,7 +91,8 @@ def kernels():
         from . import _kernels as K
 
         fns = (K.project_fwd, K.project_bwd, K.bin_pairs, K.raster_fwd, K.raster_bwd,
-               K.reduce_pairs, K._fwd_tile, K._bwd_tile)
+               K.reduce_pairs, K.depth_order, K._fwd_tile3, K._fwd_tile_any, K._bwd_tile3,
+               K._bwd_tile_any)
         cold = not all(_cache_is_warm(f) for f in fns)
         if cold:
             print(COMPILE_MESSAGE, file=sys.stderr, flush=True)
@@ -198,15 +199,11 @@ class _RasterState:
                  "pair_rows", "T", "last", "n_pairs")
 
 
-def _sorted_visible(depths: np.ndarray, radii: np.ndarray, rect: np.ndarray) -> np.ndarray:
+def _sorted_visible(K, depths: np.ndarray, radii: np.ndarray, rect: np.ndarray) -> np.ndarray:
     """[M] int64 ids of binned Gaussians, front to back (stable: ties keep index order)."""
     vis = np.nonzero((radii.max(axis=1) > 0) & (rect[:, 2] > rect[:, 0])
                      & (rect[:, 3] > rect[:, 1]))[0]
-    keys = np.ascontiguousarray(depths[vis], dtype=np.float64)
-    if keys.size and keys.min() > 0:
-        keys = keys.view(np.int64)  # same order for positive floats; integer sort is faster
-    order = vis[np.argsort(keys, kind="stable")]
-    return np.ascontiguousarray(order, dtype=np.int64)
+    return K.depth_order(depths, np.ascontiguousarray(vis, dtype=np.int64))
 
 
 def _raster_fwd_np(K, proj: _Proj, opac32, colors32, bg32, cam: _CamParams,
@@ -214,7 +211,7 @@ def _raster_fwd_np(K, proj: _Proj, opac32, colors32, bg32, cam: _CamParams,
     st = _RasterState()
     st.means2d = proj.means2d.astype(np.float32) if means2d32 is None else means2d32
     st.conics = proj.conics.astype(np.float32) if conics32 is None else conics32
-    order = _sorted_visible(proj.depths, proj.radii, proj.rect)
+    order = _sorted_visible(K, proj.depths, proj.radii, proj.rect)
     n_tiles = cam.tiles_x * cam.tiles_y
     h, w, c = cam.height, cam.width, colors32.shape[1]
     image = np.empty((h, w, c), np.float32)
@@ -261,8 +258,32 @@ def _raster_bwd_np(K, proj: _Proj, opac32, colors32, bg32, cam: _CamParams, st, 
     return v_means2d, v_conics, v_opac, v_colors
 
 
+_NP_DTYPES = {torch.float32: np.float32, torch.float64: np.float64}
+
+
 def _np(t: Tensor, dtype) -> np.ndarray:
-    return np.ascontiguousarray(t.detach().to("cpu", dtype).numpy())
+    """C-contiguous NumPy copy/view of ``t`` in ``dtype``.
+
+    Conversions are done by NumPy (single-threaded) rather than torch: a torch op on ~1e5
+    elements runs on torch's OpenMP pool, whose workers then spin for milliseconds and take
+    the cores from the numba kernels that follow (measured: kernels ~40 % slower).
+    """
+    a = t.detach()
+    if a.device.type != "cpu":
+        a = a.cpu()
+    if a.dtype not in _NP_DTYPES:  # e.g. float16 / bfloat16: let torch convert
+        a = a.to(dtype)
+    return np.ascontiguousarray(a.numpy(), dtype=_NP_DTYPES[dtype])
+
+
+def _torch(a: np.ndarray, like_dtype, device) -> Tensor:
+    """Tensor of dtype ``like_dtype`` on ``device`` from a NumPy array (converted by NumPy)."""
+    np_dtype = _NP_DTYPES.get(like_dtype)
+    if np_dtype is not None:
+        out = torch.from_numpy(np.ascontiguousarray(a, dtype=np_dtype))
+    else:
+        out = torch.from_numpy(np.ascontiguousarray(a)).to(like_dtype)
+    return out if device.type == "cpu" else out.to(device)
 
 
 class _Project(torch.autograd.Function):
@@ -282,11 +303,11 @@ class _Project(torch.autograd.Function):
         ctx.np_inputs = (m, q, s)
         ctx.meta = (means.dtype, means.device, quats.dtype, scales.dtype)
         dev = means.device
-        means2d = torch.from_numpy(proj.means2d).to(dev, means.dtype)
-        conics = torch.from_numpy(proj.conics).to(dev, means.dtype)
-        depths = torch.from_numpy(proj.depths).to(dev, means.dtype)
-        radii = torch.from_numpy(proj.radii).to(dev)
-        rect = torch.from_numpy(proj.rect).to(dev)
+        means2d = _torch(proj.means2d, means.dtype, dev)
+        conics = _torch(proj.conics, means.dtype, dev)
+        depths = _torch(proj.depths, means.dtype, dev)
+        radii = _torch(proj.radii, torch.int32, dev)
+        rect = _torch(proj.rect, torch.int32, dev)
         ctx.mark_non_differentiable(depths, radii, rect)
         return means2d, conics, depths, radii, rect
 
@@ -299,9 +320,8 @@ class _Project(torch.autograd.Function):
         v_means, v_quats, v_scales = _project_bwd_np(kernels(), m, q, s, ctx.cam, ctx.proj,
                                                      vm2, vc)
         dtype_m, dev, dtype_q, dtype_s = ctx.meta
-        return (torch.from_numpy(v_means).to(dev, dtype_m),
-                torch.from_numpy(v_quats).to(dev, dtype_q),
-                torch.from_numpy(v_scales).to(dev, dtype_s), None, None, None)
+        return (_torch(v_means, dtype_m, dev), _torch(v_quats, dtype_q, dev),
+                _torch(v_scales, dtype_s, dev), None, None, None)
 
 
 class _Rasterize(torch.autograd.Function):
@@ -321,8 +341,8 @@ class _Rasterize(torch.autograd.Function):
         ctx.meta = (means2d.dtype, conics.dtype, opacities.dtype, colors.dtype,
                     background.dtype, colors.device)
         dev = colors.device
-        image_t = torch.from_numpy(image).to(dev, colors.dtype)
-        alpha_t = torch.from_numpy(1.0 - st.T).to(dev, colors.dtype)
+        image_t = _torch(image, colors.dtype, dev)
+        alpha_t = _torch(1.0 - st.T, colors.dtype, dev)
         return image_t, alpha_t
 
     @staticmethod
@@ -336,10 +356,9 @@ class _Rasterize(torch.autograd.Function):
         dt_m, dt_c, dt_o, dt_col, dt_bg, dev = ctx.meta
         v_bg = None
         if ctx.needs_input_grad[4]:
-            v_bg = torch.from_numpy((st.T[..., None] * vi).sum(axis=(0, 1))).to(dev, dt_bg)
-        return (torch.from_numpy(v_m2d).to(dev, dt_m), torch.from_numpy(v_con).to(dev, dt_c),
-                torch.from_numpy(v_op).to(dev, dt_o), torch.from_numpy(v_col).to(dev, dt_col),
-                v_bg, None, None)
+            v_bg = _torch((st.T[..., None] * vi).sum(axis=(0, 1)), dt_bg, dev)
+        return (_torch(v_m2d, dt_m, dev), _torch(v_con, dt_c, dev), _torch(v_op, dt_o, dev),
+                _torch(v_col, dt_col, dev), v_bg, None, None)
 
 
 def rasterize_cpu(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor,
@@ -357,13 +376,14 @@ def rasterize_cpu(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tenso
     background = check_inputs(means, quats, scales, opacities, colors, camera, background)
     cam = _CamParams.from_camera(camera)
     holder: dict = {}
-    means2d, conics, depths, radii_xy, _rect = _Project.apply(means, quats, scales, opacities,
-                                                              cam, holder)
+    means2d, conics, depths, _radii_xy, _rect = _Project.apply(means, quats, scales,
+                                                               opacities, cam, holder)
     if means2d.requires_grad:
         means2d.retain_grad()
     proj = holder["proj"]
     image, alpha = _Rasterize.apply(means2d, conics, opacities, colors, background, proj, cam)
-    radii = radii_xy.max(dim=1).values.to(torch.int32) if radii_xy.numel() else \
-        torch.zeros(0, dtype=torch.int32, device=means.device)
+    radii_np = proj.radii.max(axis=1, initial=0)
+    radii = _torch(radii_np, torch.int32, means.device)
+    visible = _torch(radii_np > 0, torch.bool, means.device)
     return RenderOutput(image=image, alpha=alpha, means2d=means2d, radii=radii,
-                        visible=radii > 0, depths=depths, backend="cpu")
+                        visible=visible, depths=depths, backend="cpu")
