@@ -22,6 +22,9 @@ fi
 # Two cores here: one thread per core, never more (oversubscription was measured 5x slower).
 export OMP_NUM_THREADS=${OMP_NUM_THREADS:-$(nproc)}
 export NUMBA_NUM_THREADS=${NUMBA_NUM_THREADS:-$(nproc)}
+# torch's OpenMP workers spin after each op and steal the cores from the numba kernels that
+# run next (measured 20-40% slower kernels): let them sleep instead.
+export OMP_WAIT_POLICY=${OMP_WAIT_POLICY:-PASSIVE}
 cmd=${1:-demo}; shift || true
 case "$cmd" in
   demo) exec "$VENV/bin/pgs" demo "$@" ;;
