@@ -203,14 +203,11 @@ def _check_aspect(rec: ViewRecord, size: tuple[int, int]) -> None:
 
 
 def _default_cache_root(path: Path) -> Path:
-    here = path / ".pgs_cache"
-    try:
-        if os.access(path, os.W_OK):
-            here.mkdir(exist_ok=True)
-            if os.access(here, os.W_OK):
-                return here
-    except OSError:
-        pass
+    """The user's cache folder (``$XDG_CACHE_HOME/pgs`` or ``~/.cache/pgs``).
+
+    Never beside the scene: datasets are often shared or read-only and must stay as the user
+    has them. Entries are keyed by the source path and the view's parameters (``_cache_key``).
+    """
     base = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache")
     return base / "pgs"
 
@@ -259,8 +256,8 @@ def load_scene(path: str | os.PathLike, resolution: int = -1, images: str | None
         eval: hold out test views (every ``test_every``-th, or the Blender test file).
         test_every: test-view period for the every-Nth split.
         background: RGB in [0, 1] that RGBA images are composited on.
-        cache_dir: where resized images are cached; default ``<scene>/.pgs_cache`` when the
-            scene folder is writable, else ``$XDG_CACHE_HOME/pgs`` (``~/.cache/pgs``).
+        cache_dir: where resized images are cached; default ``$XDG_CACHE_HOME/pgs``
+            (``~/.cache/pgs``); the scene folder is never written to.
         random_init_points, random_init_extent, seed: random initial points for scenes without
             SfM points.
         undistort: ``"crop"`` or ``"keep"`` pinhole intrinsics for distorted cameras (see
