@@ -137,9 +137,7 @@ class Renderable:
             if not scene_path:
                 raise ValueError(f"{target} does not record its scene; pass --scene PATH")
         else:
-            trainer, _ = None, None
-            cfg = from_toml(target / "config.toml") if (target / "config.toml").exists() else None
-            if cfg is None:
+            if not (target / "config.toml").exists():
                 raise FileNotFoundError(f"{target} is neither a .pgs file nor a run folder")
             trainer, scene = load_run(target)
             self.trainer = trainer

@@ -89,7 +89,6 @@ def test_estimated_bits_close_to_written(encoded):
     secs = encoded["stats"]["sections"]
     for name, bits in est.items():
         written = secs[name] * 8
-        print(name, bits, written)
         assert abs(written - bits) <= 0.05 * written + 64 * 8, (name, bits, written)
 
 

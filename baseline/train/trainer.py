@@ -2,7 +2,7 @@
 
 Hooks (DESIGN.md, "Training hooks") are objects built as ``cls(trainer)`` from registry kind
 ``hooks`` and may define ``before_step(it)``, ``after_backward(it, ctx)``, ``after_step(it)``,
-``state_dict()`` / ``load_state_dict(s)`` and ``postfix() -> dict`` (shown in the progress bar).
+and ``state_dict()`` / ``load_state_dict(s)`` (saved in checkpoints).
 Hooks steer the trainer through ``trainer.phase`` (quantization phase), ``trainer.render_scale``
 (progressive resolution) and ``trainer.extra_losses`` (name -> callable(ctx) -> scalar).
 """
