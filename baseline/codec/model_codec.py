@@ -80,9 +80,7 @@ def _load_module_sections(prefix: str, module: nn.Module, sections: dict) -> Non
             raise BitstreamError(f"missing section '{sec}'")
         try:
             g.decode_bits(sections[sec])
-        except BitstreamError as e:
-            raise BitstreamError(f"section '{sec}': {e}") from None
-        except ValueError as e:
+        except ValueError as e:          # BitstreamError included: name the section
             raise BitstreamError(f"section '{sec}': {e}") from None
 
 
@@ -202,10 +200,7 @@ def decode_model(path: str | Path) -> DecodedModel:
     missing = [a for a in attrs if a not in sections]
     if missing:
         raise BitstreamError(f"missing attribute section(s) {missing}")
-    try:
-        values = entropy.decompress(xyz, {a: sections[a] for a in attrs}, gmask, n=N)
-    except BitstreamError as e:
-        raise BitstreamError(f"{e}") from None
+    values = entropy.decompress(xyz, {a: sections[a] for a in attrs}, gmask, n=N)
     model.per_anchor["mask"].data = torch.where(gmask > 0, MASK_LOGIT, -MASK_LOGIT)[..., None]
     model.per_anchor["scaling"].data = torch.log(values["scaling"].clamp_min(1e-30))
     model.per_anchor["offsets"].data = values["offsets"].view(N, K, 3).clone()

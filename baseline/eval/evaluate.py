@@ -8,15 +8,9 @@ from typing import Optional
 import numpy as np
 import torch
 
+from baseline.data.images import write_png_atomic
 from baseline.eval.metrics import psnr, ssim, to_uint8
 from baseline.pipeline import render_view
-
-
-def save_png(path: Path, img_u8: np.ndarray) -> None:
-    import matplotlib.image as mpimg
-
-    path.parent.mkdir(parents=True, exist_ok=True)
-    mpimg.imsave(path, img_u8)
 
 
 @torch.no_grad()
@@ -44,7 +38,9 @@ def evaluate(model, scene, cameras, *, phase: str, entropy=None, backend: str = 
         if lpips_fn is not None:
             lp.append(float(lpips_fn(a, b)))
         if render_dir is not None:
-            save_png(Path(render_dir) / f"{i:04d}_{Path(cam.name).stem}.png", a)
+            out = Path(render_dir) / f"{i:04d}_{Path(cam.name).stem}.png"
+            out.parent.mkdir(parents=True, exist_ok=True)
+            write_png_atomic(out, a)
     t = times[fps_skip:] if len(times) > fps_skip else times
     out = {
         "psnr": float(np.mean(ps)) if ps else float("nan"),
