@@ -79,10 +79,9 @@ def render_view(model, cam: Camera, background: torch.Tensor, *, phase: str = "n
             raise ValueError("the adaptive phase needs an entropy model")
         gmask = model.gaussian_mask(idx)
         if training:
-            values, all_bits = entropy(xyz, values, gmask, training=True)
             valid = (gmask.detach() > 0).any(dim=1)
             choose = (torch.rand(len(idx), generator=generator) <= rate_sample) & valid
-            bits = {k: b[choose] for k, b in all_bits.items()}
+            values, bits = entropy(xyz, values, gmask, training=True, rate_rows=choose)
             n_rate = int(choose.sum())
         else:
             if quantized_xyz is not None:

@@ -13,6 +13,8 @@ from baseline.config import build_config
 from baseline.data.scene import load_scene
 from baseline.data.synthetic import make_scene
 from baseline.eval.evaluate import evaluate
+from baseline.hac.entropy import LIKELIHOOD_FLOOR, gaussian_likelihood
+from baseline.hac.quant import ste_round
 from baseline.pipeline import quantized_positions
 from baseline.train.trainer import Trainer
 
@@ -85,11 +87,26 @@ def test_estimated_bits_close_to_written(encoded):
     idx = encoded["stats"]["index"]
     xyz_q = encoded["stats"]["xyz_q"]
     gm = (torch.sigmoid(t.model.per_anchor["mask"].detach()[idx][..., 0]) > 0.01).float()
-    est = t.entropy.estimate_bits(xyz_q, t.model.coded_values(idx), gm)
+    values = t.model.coded_values(idx)
+    est = t.entropy.estimate_bits(xyz_q, values, gm)
     secs = encoded["stats"]["sections"]
+    # Symbols whose likelihood hits the training floor (1e-6, HAC's: 19.9 bits) cost the range
+    # coder up to its own floor (2^-24 -> 24-25 bits): measured 4.3-4.8 bits more each on this
+    # barely trained model. Allowed for explicitly, and required to be rare.
+    with torch.no_grad():
+        P = t.entropy.params(xyz_q)
+        floor_hits = {}
+        for a in t.entropy.attrs:
+            mean, scale, q = P[a.name]
+            lik = gaussian_likelihood(ste_round(values[a.name], q), mean, scale, q)
+            m = t.entropy.value_mask(a, gm, len(idx))
+            lik = lik[m] if m is not None else lik
+            floor_hits[a.name] = int((lik <= LIKELIHOOD_FLOOR * 1.0001).sum())
+            assert floor_hits[a.name] <= 0.02 * lik.numel(), (a.name, floor_hits[a.name], lik.numel())
     for name, bits in est.items():
         written = secs[name] * 8
-        assert abs(written - bits) <= 0.05 * written + 64 * 8, (name, bits, written)
+        assert -(0.05 * written + 64 * 8) <= written - bits <= 0.05 * written + 64 * 8 + 5.5 * floor_hits[name], \
+            (name, bits, written, floor_hits[name])
 
 
 def test_info_groups_sum_to_file_size(encoded):

@@ -154,14 +154,19 @@ class EntropyModel(nn.Module):
     # --------------------------------------------------------------- training
     def forward(self, xyz: torch.Tensor, values: Dict[str, torch.Tensor],
                 gauss_mask: Optional[torch.Tensor] = None, training: bool = True,
-                adaptive_q: bool = True):
+                adaptive_q: bool = True, rate_rows: Optional[torch.Tensor] = None):
         """Quantized values and per-anchor bits per attribute (see module docstring).
 
         ``adaptive_q=False`` uses the base step q0 (HAC's phase 3001..10000).
+        ``rate_rows`` ([S] indices or [N] bool): bits are computed for these anchors only and
+        returned as [S] (the rate loss uses a ~5% sample; the likelihood of the other 95% would
+        be computed and thrown away). Default: all anchors, [N].
         """
         n = xyz.shape[0]
         self._check_values(values, n)
         P = self.params(xyz)
+        if rate_rows is not None and rate_rows.dtype == torch.bool:
+            rate_rows = rate_rows.nonzero()[:, 0]
         values_hat, bits = {}, {}
         for a in self.attrs:
             x = values[a.name]
@@ -169,8 +174,13 @@ class EntropyModel(nn.Module):
             if not adaptive_q:
                 q = torch.full_like(q, a.q0)
             x_hat = noise_quantize(x, q) if training else ste_round(x, q)
-            b = gaussian_bits(x_hat, mean, scale, q)
             m = self.value_mask(a, gauss_mask, n, device=x.device)
+            if rate_rows is not None:
+                sel = (lambda t: t[rate_rows] if t.shape[0] == n else t)
+                b = gaussian_bits(x_hat[rate_rows], sel(mean), sel(scale), sel(q))
+                m = m[rate_rows] if m is not None else None
+            else:
+                b = gaussian_bits(x_hat, mean, scale, q)
             if m is not None:
                 b = b * m.to(b.dtype)
             values_hat[a.name] = x_hat

@@ -41,6 +41,7 @@ very large hashed levels fall back to the uint32 hash in int64.
 from __future__ import annotations
 
 import math
+import os
 from typing import Dict, Optional, Sequence, Tuple
 
 import numpy as np
@@ -67,12 +68,13 @@ class STEBinary(torch.autograd.Function):
     @staticmethod
     def forward(ctx, x):
         ctx.save_for_backward(x)
-        return torch.where(x.clamp(-1.0, 1.0) >= 0, torch.ones_like(x), -torch.ones_like(x))
+        # clamp(x, -1, 1) >= 0 is x >= 0 (NaN -> -1 either way); one fused op instead of four.
+        return torch.where(x >= 0, 1.0, -1.0).to(x.dtype)
 
     @staticmethod
     def backward(ctx, grad):
         (x,) = ctx.saved_tensors
-        return grad * (x.abs() <= 1.0).to(grad.dtype)
+        return torch.where(x.abs() <= 1.0, grad, 0.0)
 
 
 def binarize(x: torch.Tensor) -> torch.Tensor:
@@ -230,6 +232,8 @@ class GridLevels(nn.Module):
         weighted sums are exact and order-free; the one rounding left is the final division by
         the weight sum, a correctly rounded elementwise operation.
         """
+        if not exact and _use_kernels(u, table):
+            return _GridKernel.apply(table, u.contiguous(), self)
         n = u.shape[0]
         inside = ((u >= 0) & (u <= 1)).all(dim=-1)  # NaN counts as outside
         u = torch.where(inside[:, None], u, torch.full_like(u, 0.5))
@@ -249,6 +253,86 @@ class GridLevels(nn.Module):
             out = acc * (1.0 / wn)
         out = out.reshape(n, -1) * inside[:, None].to(out.dtype)
         return out
+
+
+_BACKEND = os.environ.get("PGS_GRID_BACKEND", "auto")
+
+
+def set_grid_backend(name: str) -> None:
+    """Float-path backend of every grid: ``auto`` (numba kernels on the CPU when usable),
+    ``numba`` (same; an error where they cannot run) or ``torch`` (plain PyTorch ops)."""
+    global _BACKEND
+    if name not in ("auto", "numba", "torch"):
+        raise ValueError(f"grid backend must be auto, numba or torch, got {name!r}")
+    _BACKEND = name
+
+
+def get_grid_backend() -> str:
+    return _BACKEND
+
+
+def _use_kernels(u: torch.Tensor, table: torch.Tensor) -> bool:
+    if _BACKEND == "torch":
+        return False
+    ok = (u.device.type == "cpu" and table.device.type == "cpu" and u.dtype == torch.float32
+          and table.dtype == torch.float32 and not (u.requires_grad and torch.is_grad_enabled()))
+    if _BACKEND == "numba" and not ok:
+        raise ValueError("grid backend 'numba' needs float32 CPU inputs without a position "
+                         "gradient; use 'auto' or 'torch'")
+    return ok
+
+
+def _kernel_meta(g: "GridLevels"):
+    meta = getattr(g, "_kmeta", None)
+    if meta is None:
+        res = np.asarray(g.resolutions, dtype=np.int64)
+        rows = np.asarray(g.rows, dtype=np.int64)
+        offsets = np.concatenate([[0], np.cumsum(rows)[:-1]]).astype(np.int64)
+        hashed = np.asarray([r ** g.dim > t for r, t in zip(g.resolutions, g.rows)], dtype=np.uint8)
+        strides = np.asarray([[r ** d for d in range(g.dim)] for r in g.resolutions], dtype=np.int64)
+        meta = g._kmeta = (res, rows, offsets, hashed, strides)
+    return meta
+
+
+def _grid_kernels():
+    """The numba grid kernels, sharing the CPU rasterizer's thread settings and launch lock."""
+    from baseline.render import cpu as _cpu
+
+    _cpu._configure_numba()
+    from . import _grid_kernels as K
+    return K, _cpu
+
+
+class _GridKernel(torch.autograd.Function):
+    """Fused interpolation of one :class:`GridLevels` (numba); gradient to the table only."""
+
+    @staticmethod
+    def forward(ctx, table, u, grid):
+        K, cpu = _grid_kernels()
+        meta = _kernel_meta(grid)
+        un = u.detach().numpy()
+        tn = table.detach().contiguous().numpy()
+        out = np.empty((un.shape[0], grid.n_levels * tn.shape[1]), dtype=np.float32)
+        with cpu._RUN_LOCK:
+            cpu._apply_threads()
+            K.grid_fwd(un, tn, *meta, out)
+        ctx.save_for_backward(u)
+        ctx.grid = grid
+        ctx.table_shape = tuple(table.shape)
+        return torch.from_numpy(out)
+
+    @staticmethod
+    def backward(ctx, gout):
+        if not ctx.needs_input_grad[0]:
+            return None, None, None
+        (u,) = ctx.saved_tensors
+        K, cpu = _grid_kernels()
+        gt = np.zeros(ctx.table_shape, dtype=np.float32)
+        with cpu._RUN_LOCK:
+            nt = cpu._apply_threads()
+            K.grid_bwd(u.numpy(), gout.detach().to(torch.float32).contiguous().numpy(),
+                       *_kernel_meta(ctx.grid), gt, nt)
+        return torch.from_numpy(gt), None, None
 
 
 class _WeightedGather(torch.autograd.Function):
@@ -438,8 +522,11 @@ class BinaryHashGrid(nn.Module):
 
     def _query(self, u: torch.Tensor, tables: Dict[str, torch.Tensor], exact: bool) -> torch.Tensor:
         outs = []
-        for s in range(0, max(u.shape[0], 1), self.chunk):
-            uc = u[s:s + self.chunk]
+        # The numba kernels need no temporaries per corner: one call for all points.
+        fused = not exact and _use_kernels(u, next(iter(tables.values())))
+        step = max(u.shape[0], 1) if fused else self.chunk
+        for s in range(0, max(u.shape[0], 1), step):
+            uc = u[s:s + step]
             parts = [g.encode(uc[:, list(self._axes[k])], tables[k], exact=exact)
                      for k, g in self.grids.items()]
             out = torch.cat(parts, dim=-1)
