@@ -164,18 +164,16 @@ def cmd_info(args) -> int:
 
 def cmd_export_ply(args) -> int:
     from baseline.eval.export import export_run_ply
-    from baseline.run import load_run
+    from baseline.run import coding_positions, load_run
 
     trainer, scene = load_run(args.run)
     out = args.output or str(Path(args.run) / "point_cloud.ply")
     values = None
-    if trainer.phase == "adaptive":      # export what the codec would store: quantized values
+    xyz_q = coding_positions(trainer)
+    if xyz_q is not None:      # export what the codec would store: quantized values
         import torch
 
-        from baseline.pipeline import quantized_positions
-
         idx = torch.arange(trainer.model.n_anchors)
-        xyz_q = quantized_positions(trainer.model.xyz)
         hard = (trainer.model.gaussian_mask().detach() > 0).float()
         values = trainer.entropy.quantize_for_coding(xyz_q, trainer.model.coded_values(idx), hard)
     n = export_run_ply(trainer.model, scene.train_cameras, out, values)

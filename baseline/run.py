@@ -91,17 +91,21 @@ def train_run(scene_path: str, out: str | Path, cfg: Config, resume: bool = Fals
     return results
 
 
+def coding_positions(trainer: Trainer):
+    """[N,3] positions as the codec stores them (16-bit) in the adaptive phase, else None."""
+    if trainer.phase != "adaptive":
+        return None
+    from baseline.pipeline import quantized_positions
+
+    return quantized_positions(trainer.model.xyz)
+
+
 def evaluate_trainer(trainer: Trainer, scene, render_dir: Optional[Path] = None, lpips_fn=None) -> dict:
     from baseline.eval.evaluate import evaluate
 
     cams = scene.test_cameras or scene.train_cameras
-    xyz_q = None
-    if trainer.phase == "adaptive":
-        from baseline.pipeline import quantized_positions
-
-        xyz_q = quantized_positions(trainer.model.xyz)
     return evaluate(trainer.model, scene, cams, phase=trainer.phase, entropy=trainer.entropy,
-                    backend=trainer.cfg.train.rasterizer, quantized_xyz=xyz_q,
+                    backend=trainer.cfg.train.rasterizer, quantized_xyz=coding_positions(trainer),
                     render_dir=render_dir, lpips_fn=lpips_fn)
 
 
@@ -143,10 +147,7 @@ class Renderable:
             self.trainer = trainer
             self.cfg, self.model, self.phase = trainer.cfg, trainer.model, trainer.phase
             self.entropy = trainer.entropy
-            if self.phase == "adaptive":
-                from baseline.pipeline import quantized_positions
-
-                self.xyz_q = quantized_positions(trainer.model.xyz)
+            self.xyz_q = coding_positions(trainer)
             scene_path = scene_override or json.loads((target / "scene.json").read_text())["path"]
             if scene_override is None:
                 self.scene = scene
