@@ -190,8 +190,12 @@ def cmd_bench(args) -> int:
     elif args.what == "codec":
         from baseline.codec.bench import format_codec_bench, run_codec_bench
 
-        rows = run_codec_bench(n_anchors=args.anchors)
+        rows = run_codec_bench(n_anchors=args.anchors or 500_000)
         print(format_codec_bench(rows))
+    elif args.what == "grid":
+        from baseline.hac.bench import format_grid_bench, run_grid_bench
+
+        print(format_grid_bench(run_grid_bench(args.anchors or 100_000, threads=args.threads)))
     return 0
 
 
@@ -298,9 +302,10 @@ def main(argv=None) -> int:
     p.set_defaults(fn=cmd_export_ply)
 
     p = sub.add_parser("bench", help="benchmarks, printed as ratios to a reference in one process")
-    p.add_argument("what", choices=["raster", "codec"])
+    p.add_argument("what", choices=["raster", "codec", "grid"])
     p.add_argument("--threads", type=int, default=None)
-    p.add_argument("--anchors", type=int, default=500_000)
+    p.add_argument("--anchors", type=int, default=None,
+                   help="payload size (default: codec 500k, grid 100k)")
     p.set_defaults(fn=cmd_bench)
 
     p = sub.add_parser("compare", help="train/encode/decode methods side by side: tables, BD-rate, plots")

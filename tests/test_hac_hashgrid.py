@@ -299,3 +299,14 @@ def test_numba_backend_refuses_position_gradient(small_grid):
         H.set_grid_backend(old)
     with pytest.raises(ValueError, match="grid backend"):
         H.set_grid_backend("cuda")
+
+
+def test_grid_bench_runs_small():
+    from baseline.hac.bench import format_grid_bench, run_grid_bench
+
+    rows = run_grid_bench(n_anchors=2000, threads=1, repeats=1)
+    assert [r["backend"] for r in rows] == ["torch", "numba"]
+    assert all(r["forward_s"] > 0 and r["forward_backward_s"] > 0 for r in rows)
+    assert rows[0]["ratio_forward"] == 1.0
+    text = format_grid_bench(rows)
+    assert "numba" in text and "x f+b" in text

@@ -57,12 +57,22 @@ def _calibrate(model, values, mask) -> None:
 
 def run_codec_bench(n_anchors: int = 500_000, model: str = "hac", threads: int = 0,
                     seed: int = 0, repeats: int = 1) -> List[Dict]:
-    """Encode + decode a synthetic payload; one result row per repeat (times in seconds)."""
+    """Encode + decode a synthetic payload; one result row per repeat (times in seconds).
+
+    ``threads`` sets torch's thread count for the run (restored afterwards)."""
+    prev = torch.get_num_threads()
+    if threads:
+        torch.set_num_threads(int(threads))
+    try:
+        return _run_codec_bench(n_anchors, model, seed, repeats)
+    finally:
+        torch.set_num_threads(prev)
+
+
+def _run_codec_bench(n_anchors: int, model: str, seed: int, repeats: int) -> List[Dict]:
     import baseline.hac  # noqa: F401  (registers the entropy models)
     from baseline import registry
 
-    if threads:
-        torch.set_num_threads(int(threads))
     torch.manual_seed(seed)
     attrs = scaffold_coded_attributes()
     cls = registry.get("entropy_model", model)
