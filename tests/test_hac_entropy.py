@@ -165,6 +165,31 @@ def test_forward_bits_and_masks(kind):
     assert torch.all((vh["feat"] - vals["feat"]).abs() <= P["feat"][2] / 2 + 1e-6)
 
 
+@pytest.mark.parametrize("kind", ["hac", "factorized"])
+def test_rate_rows_equal_full_bits_on_the_sample(kind):
+    """Bits on a rate sample (the training path: likelihood only where the loss uses it) equal
+    the full computation's on those rows; values are quantized for every anchor alike."""
+    m = make_hac() if kind == "hac" else FactorizedEntropyModel(ATTRS, 10)
+    n = 400
+    g = torch.Generator().manual_seed(5)
+    xyz = torch.rand(n, 3, generator=g) * 2 - 1
+    vals = {a.name: torch.randn(n, a.dims, generator=g) * (1 if a.name != "scaling" else 0.01) for a in ATTRS}
+    mask = (torch.rand(n, 10, generator=g) < 0.5).float()
+    choose = torch.rand(n, generator=g) < 0.1
+    vh, full = m(xyz, vals, mask, training=False)
+    vh_s, part = m(xyz, vals, mask, training=False, rate_rows=choose)
+    for a in ATTRS:
+        assert part[a.name].shape == (int(choose.sum()),)
+        assert torch.allclose(part[a.name], full[a.name][choose], rtol=1e-5, atol=1e-4)
+        assert torch.allclose(vh_s[a.name], vh[a.name], rtol=0, atol=1e-6)
+    # gradients still reach the whole head (the q columns from every anchor, the rest from the sample)
+    if kind == "hac":
+        m.zero_grad()
+        _, part = m(xyz, vals, mask, training=True, rate_rows=choose.nonzero()[:, 0])
+        sum(b.sum() for b in part.values()).backward()
+        assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in m.mlp.parameters())
+
+
 def test_gradients_reach_grid_mlp_and_values():
     m = make_hac()
     n = 200

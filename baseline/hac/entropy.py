@@ -52,6 +52,7 @@ from typing import Dict, Optional, Sequence, Tuple
 import numpy as np
 import torch
 import torch.nn as nn
+import torch.nn.functional as F
 
 from baseline.contracts import CodedAttribute
 from baseline.codec.container import BitstreamError
@@ -117,6 +118,17 @@ class EntropyModel(nn.Module):
     def params(self, xyz: torch.Tensor, exact: bool = False, _ctx=None) -> Params:
         raise NotImplementedError
 
+    def train_params(self, xyz: torch.Tensor, rows: torch.Tensor):
+        """Training-path parameters when bits are needed on ``rows`` [S] only.
+
+        Returns ``(q_all, P_rows)``: the quantization step of every anchor per attribute
+        ({name: [N,1]}, it quantizes all of them) and (mean [S,d], scale [S,d], q [S,1]) of the
+        rows. Default: from :meth:`params`; models override it to skip work on the other rows.
+        """
+        P = self.params(xyz)
+        return ({a.name: P[a.name][2] for a in self.attrs},
+                {a.name: tuple(t[rows] for t in P[a.name]) for a in self.attrs})
+
     def _exact_context(self):
         """Precomputed state shared by all chunks of one exact pass (e.g. the fixed-point MLP)."""
         return None
@@ -164,20 +176,24 @@ class EntropyModel(nn.Module):
         """
         n = xyz.shape[0]
         self._check_values(values, n)
-        P = self.params(xyz)
         if rate_rows is not None and rate_rows.dtype == torch.bool:
             rate_rows = rate_rows.nonzero()[:, 0]
+        if rate_rows is None:
+            P = self.params(xyz)
+            q_all = {a.name: P[a.name][2] for a in self.attrs}
+        else:
+            q_all, P = self.train_params(xyz, rate_rows)
         values_hat, bits = {}, {}
         for a in self.attrs:
             x = values[a.name]
-            mean, scale, q = P[a.name]
+            mean, scale, _ = P[a.name]
+            q = q_all[a.name]
             if not adaptive_q:
                 q = torch.full_like(q, a.q0)
             x_hat = noise_quantize(x, q) if training else ste_round(x, q)
             m = self.value_mask(a, gauss_mask, n, device=x.device)
             if rate_rows is not None:
-                sel = (lambda t: t[rate_rows] if t.shape[0] == n else t)
-                b = gaussian_bits(x_hat[rate_rows], sel(mean), sel(scale), sel(q))
+                b = gaussian_bits(x_hat[rate_rows], mean, scale, q[rate_rows])
                 m = m[rate_rows] if m is not None else None
             else:
                 b = gaussian_bits(x_hat, mean, scale, q)
@@ -388,6 +404,22 @@ class HACEntropyModel(EntropyModel):
                 ex = _ctx if _ctx is not None else self._exact_context()
                 return self._split(ex(self.grid.features_fixed(xyz)), exact=True)
         return self._split(self.mlp(self.grid(xyz)), exact=False)
+
+    def train_params(self, xyz: torch.Tensor, rows: torch.Tensor):
+        """As :meth:`params`, but the mean/scale outputs (172 of HAC's 175 output columns) only
+        for ``rows``: every visible anchor needs its adaptive step, only the ~5% rate sample
+        needs a likelihood. Same function as the full head; the dropped columns were never
+        used (about 2.5x fewer multiply-adds in the context MLP per training step)."""
+        h = self.mlp[1](self.mlp[0](self.grid(xyz)))  # [N, hidden]
+        last = self.mlp[2]
+        n_attrs = len(self.attrs)
+        adj_off = self.n_out - n_attrs
+        adj = F.linear(h, last.weight[adj_off:], last.bias[adj_off:])  # [N, n_attrs]
+        q_all = {a.name: adaptive_q(a.q0, adj[:, i:i + 1]) for i, a in enumerate(self.attrs)}
+        P_rows = self._split(last(h[rows]), exact=False)
+        P_rows = {a.name: (P_rows[a.name][0], P_rows[a.name][1], q_all[a.name][rows])
+                  for a in self.attrs}
+        return q_all, P_rows
 
     def serialize(self, precision: str = "float32") -> Dict[str, bytes]:
         """Sections ``grid`` (Bernoulli-coded binary tables) and ``mlp`` (weights + grid bounds).
