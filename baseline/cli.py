@@ -110,16 +110,22 @@ def cmd_encode(args) -> int:
         print(f"note: {args.run} stopped before the entropy model was trained (phase "
               f"'{trainer.phase}'); the file is coded with an untrained context model")
     scene_path = json.loads((Path(args.run) / "scene.json").read_text())["path"]
-    st = encode_model(trainer.cfg, trainer.model, trainer.entropy, args.output,
+    cfg = trainer.cfg
+    if args.weights and args.weights != cfg.codec.weight_dtype:
+        import dataclasses
+
+        cfg = dataclasses.replace(cfg, codec=dataclasses.replace(cfg.codec, weight_dtype=args.weights))
+    st = encode_model(cfg, trainer.model, trainer.entropy, args.output,
                       extra_header={"scene": scene_path})
     print(format_info(file_info(args.output)))
     print(f"wrote {args.output}: {st['bytes']} bytes ({st['bytes'] / 2**20:.4f} MB), "
           f"{st['anchors']} anchors, encode {st['encode_s']:.2f} s")
     path = Path(args.run) / "results.json"
     full = json.loads(path.read_text()) if path.exists() else {}
-    full["encode"] = {"file": str(args.output), "bytes": st["bytes"], "encode_s": st["encode_s"],
-                      "anchors": st["anchors"], "sections": st["sections"]}
-    write_json_atomic(path, full)
+    if cfg is trainer.cfg:  # the run's own configuration: record it with the run
+        full["encode"] = {"file": str(args.output), "bytes": st["bytes"], "encode_s": st["encode_s"],
+                          "anchors": st["anchors"], "sections": st["sections"]}
+        write_json_atomic(path, full)
     return 0
 
 
@@ -283,6 +289,8 @@ def main(argv=None) -> int:
     p = sub.add_parser("encode", help="compress a trained run into one .pgs file")
     p.add_argument("run")
     p.add_argument("-o", "--output", required=True)
+    p.add_argument("--weights", choices=["float32", "float16"], default=None,
+                   help="network weight precision in the file (default: the run's codec.weight_dtype)")
     p.set_defaults(fn=cmd_encode)
 
     p = sub.add_parser("decode", help="decode a .pgs file (PLY export, optional renders + metrics)")

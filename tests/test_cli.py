@@ -69,3 +69,19 @@ def test_bad_input_gives_a_named_error(trained, tmp_path, capsys):
     assert "junk.pgs" in err or "magic" in err.lower()
     assert main(["train", str(scene), "--out", str(tmp_path / "r"), "--set", "train.nope=1"]) == 2
     assert "nope" in capsys.readouterr().err
+
+
+def test_encode_with_float16_weights(trained, capsys):
+    from baseline.codec.model_codec import decode_model, file_info
+
+    d, _, run = trained
+    f32, f16 = d / "w32.pgs", d / "w16.pgs"
+    assert main(["encode", str(run), "-o", str(f32)]) == 0
+    before = json.loads((run / "results.json").read_text()).get("encode")
+    assert main(["encode", str(run), "-o", str(f16), "--weights", "float16"]) == 0
+    # the run's record keeps its own configuration's encoding
+    assert json.loads((run / "results.json").read_text()).get("encode") == before
+    i32, i16 = file_info(f32), file_info(f16)
+    assert i16["total_bytes"] < i32["total_bytes"]
+    assert decode_model(f16).header["weight_dtype"] == "float16"
+    assert main(["eval", str(f16)]) == 0
