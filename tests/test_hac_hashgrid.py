@@ -310,3 +310,38 @@ def test_grid_bench_runs_small():
     assert rows[0]["ratio_forward"] == 1.0
     text = format_grid_bench(rows)
     assert "numba" in text and "x f+b" in text
+
+
+@pytest.mark.parametrize("layout", ["small", "general", "hac"])
+def test_exact_kernel_bit_identical_to_torch_path(small_grid, layout):
+    """The exact (coding) path's numba kernel gives the PyTorch float64 path's bits, including
+    points outside the box (+0 features), NaN, and weights that round half to even."""
+    from baseline.hac import hashgrid as H
+
+    if layout == "small":
+        g = small_grid
+    elif layout == "general":
+        torch.manual_seed(6)
+        g = BinaryHashGrid(resolutions_3d=(2100,), log2_table_3d=20, resolutions_2d=(5000, 6),
+                           log2_table_2d=20, n_features=2, init_range=1.0)
+    else:
+        torch.manual_seed(7)
+        g = BinaryHashGrid(init_range=1.0)
+        g.set_bounds([-2.0, -1.0, 0.0], [2.0, 1.0, 3.0])
+    lo, hi = g.xyz_min.numpy().astype(float), g.xyz_max.numpy().astype(float)
+    rng = np.random.default_rng(3)
+    pts = special_points(lo, hi, rng, 500)
+    # positions on a 2^-17 lattice of the box: many per-axis weights f * 2^15 are exact ties
+    u = np.floor(rng.random((500, 3)) * 2 ** 17) / 2 ** 17
+    pts = np.vstack([pts, lo + u * (hi - lo), [[np.nan, lo[1], lo[2]]]])
+    x = torch.from_numpy(pts)
+    old = H.get_grid_backend()
+    try:
+        H.set_grid_backend("torch")
+        ref = g.features_fixed(x)
+        H.set_grid_backend("auto")
+        got = g.features_fixed(x)
+    finally:
+        H.set_grid_backend(old)
+    assert torch.equal(got.view(torch.int64), ref.view(torch.int64))   # bits, signs of zero too
+    assert (got != 0).any()

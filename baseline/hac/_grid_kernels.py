@@ -16,7 +16,8 @@ compute corners, weights and hashes in registers, one point-level at a time:
 
 Points whose coordinates leave [0, 1] (or are NaN) output zeros and receive no gradient.
 No gradient is computed for the positions (anchor positions are not trained; the PyTorch path
-is used when they require a gradient). The exact (coding) path stays in PyTorch float64.
+is used when they require a gradient). :func:`grid_fwd_exact` is the exact (coding) path's
+forward, bit-identical to the PyTorch float64 path (integer weights, exact sums).
 
 Arrays: ``u`` [n, dim] float32, ``table`` [rows, F] float32, ``res`` [L] int64, ``rows`` [L]
 int64 (rows of each level), ``offsets`` [L] int64, ``hashed`` [L] uint8, ``strides`` [L, dim]
@@ -197,3 +198,95 @@ def grid_bwd(u, gout, res, rows, offsets, hashed, strides, gtable, nparts):
         for p in range(nparts):
             for k in range(F):
                 gtable[r, k] += buf[p, r, k]
+
+
+# ------------------------------------------------------------------ exact (coding) path
+_WEIGHT_ONE = 32768  # 2^WEIGHT_BITS (hashgrid.WEIGHT_BITS = 15)
+
+
+@njit(cache=True, inline="always")
+def _axis_exact(uv, r):
+    """As :func:`_axis` in float64 with integer weights ``round(f * 2^15)`` (half to even)."""
+    pos = uv * np.float64(r - 2)
+    pos = pos + 0.5          # two rounded operations, as the PyTorch path (no FMA: no fastmath)
+    gf = np.floor(pos)
+    f = pos - gf             # exact
+    g = np.int64(gf)
+    g1 = min(g + 1, r - 1)
+    w1 = np.int64(np.rint(f * np.float64(_WEIGHT_ONE)))
+    w0 = _WEIGHT_ONE - w1
+    if g <= 0 or g >= r - 1:
+        w0 = 0
+    if g1 <= 0 or g1 >= r - 1:
+        w1 = 0
+    return g, g1, w0, w1
+
+
+@njit(cache=True, parallel=True, nogil=True, error_model="numpy")
+def grid_fwd_exact(u, table, res, rows, offsets, hashed, strides, out):
+    """The exact path of :meth:`GridLevels.encode` (``exact=True``), fused.
+
+    ``u`` [n, dim] float64, ``table`` [rows, F] int8 (entries +-1), ``out`` [n, L*F] float64.
+    Corner weights are the same integers as the PyTorch path's (< 2^45), sums are done in int64
+    (exact), and the one rounding is the final float64 division of two integers below 2^53:
+    bit-identical to the PyTorch float64 path whatever the thread count. The int8 table keeps
+    the random gathers in cache (measured 3.5x faster than a float64 table).
+    """
+    n, dim = u.shape
+    L = res.shape[0]
+    F = table.shape[1]
+    nc = 8 if dim == 3 else 4
+    for ch in prange((n + _CHUNK - 1) // _CHUNK):
+        rix = np.empty(8, np.int64)
+        wts = np.empty(8, np.int64)
+        ti = np.empty(6, np.int64)
+        tw = np.empty(6, np.int64)
+        acc = np.empty(F, np.int64)
+        for i in range(ch * _CHUNK, min(n, (ch + 1) * _CHUNK)):
+            if not _inside(u, i, dim):
+                for k in range(L * F):
+                    out[i, k] = 0.0
+                continue
+            for l in range(L):
+                r = res[l]
+                hl = hashed[l]
+                for d in range(dim):
+                    g, g1, w0, w1 = _axis_exact(u[i, d], r)
+                    if hl:
+                        ti[2 * d] = (g * _PRIMES[d]) & _MASK32
+                        ti[2 * d + 1] = (g1 * _PRIMES[d]) & _MASK32
+                    else:
+                        ti[2 * d] = g * strides[l, d]
+                        ti[2 * d + 1] = g1 * strides[l, d]
+                    tw[2 * d] = w0
+                    tw[2 * d + 1] = w1
+                nr = rows[l]
+                pow2 = (nr & (nr - 1)) == 0
+                off = offsets[l]
+                wn = 0
+                for c in range(nc):
+                    b0 = c & 1
+                    b1 = 2 + ((c >> 1) & 1)
+                    w = tw[b1] * tw[b0]
+                    if dim == 3:
+                        b2 = 4 + (c >> 2)
+                        w = tw[b2] * w
+                        h = (ti[b0] ^ ti[b1] ^ ti[b2]) if hl else (ti[b0] + ti[b1] + ti[b2])
+                    else:
+                        h = (ti[b0] ^ ti[b1]) if hl else (ti[b0] + ti[b1])
+                    if hl:
+                        h = (h & (nr - 1)) if pow2 else (h % nr)
+                    rix[c] = off + h
+                    wts[c] = w
+                    wn += w
+                for k in range(F):
+                    acc[k] = 0
+                for c in range(nc):
+                    w = wts[c]
+                    if w != 0:
+                        rr = rix[c]
+                        for k in range(F):
+                            acc[k] += w * np.int64(table[rr, k])
+                den = np.float64(wn) if wn != 0 else 1.0
+                for k in range(F):
+                    out[i, l * F + k] = np.float64(acc[k]) / den

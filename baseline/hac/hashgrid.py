@@ -234,6 +234,8 @@ class GridLevels(nn.Module):
         """
         if not exact and _use_kernels(u, table):
             return _GridKernel.apply(table, u.contiguous(), self)
+        if exact and _use_exact_kernel(u, table):
+            return _grid_exact_kernel(self, u, table)
         n = u.shape[0]
         inside = ((u >= 0) & (u <= 1)).all(dim=-1)  # NaN counts as outside
         u = torch.where(inside[:, None], u, torch.full_like(u, 0.5))
@@ -251,8 +253,9 @@ class GridLevels(nn.Module):
         else:
             wn = torch.where(wn == 0, torch.full_like(wn, 1e-9), wn)
             out = acc * (1.0 / wn)
-        out = out.reshape(n, -1) * inside[:, None].to(out.dtype)
-        return out
+        # where, not a product: outside points get +0 (a product gives -0 for negative values),
+        # as the fused kernels write
+        return torch.where(inside[:, None], out.reshape(n, -1), 0.0)
 
 
 _BACKEND = os.environ.get("PGS_GRID_BACKEND", "auto")
@@ -280,6 +283,26 @@ def _use_kernels(u: torch.Tensor, table: torch.Tensor) -> bool:
         raise ValueError("grid backend 'numba' needs float32 CPU inputs without a position "
                          "gradient; use 'auto' or 'torch'")
     return ok
+
+
+def _use_exact_kernel(u: torch.Tensor, table: torch.Tensor) -> bool:
+    """The exact path's numba kernel: same bits as the PyTorch float64 path (tested), ~10x
+    faster; under the same backend switch as the float kernels."""
+    if _BACKEND == "torch":
+        return False
+    return (u.device.type == "cpu" and table.device.type == "cpu" and u.dtype == torch.float64
+            and table.dtype == torch.float64)
+
+
+def _grid_exact_kernel(g: "GridLevels", u: torch.Tensor, table: torch.Tensor) -> torch.Tensor:
+    K, cpu = _grid_kernels()
+    un = u.detach().contiguous().numpy()
+    out = np.empty((un.shape[0], g.n_levels * table.shape[1]), dtype=np.float64)
+    with cpu._RUN_LOCK:
+        cpu._apply_threads()
+        tab = table.detach().to(torch.int8).contiguous().numpy()   # entries are +-1
+        K.grid_fwd_exact(un, tab, *_kernel_meta(g), out)
+    return torch.from_numpy(out)
 
 
 def _kernel_meta(g: "GridLevels"):
@@ -523,7 +546,8 @@ class BinaryHashGrid(nn.Module):
     def _query(self, u: torch.Tensor, tables: Dict[str, torch.Tensor], exact: bool) -> torch.Tensor:
         outs = []
         # The numba kernels need no temporaries per corner: one call for all points.
-        fused = not exact and _use_kernels(u, next(iter(tables.values())))
+        t0 = next(iter(tables.values()))
+        fused = _use_exact_kernel(u, t0) if exact else _use_kernels(u, t0)
         step = max(u.shape[0], 1) if fused else self.chunk
         for s in range(0, max(u.shape[0], 1), step):
             uc = u[s:s + step]
