@@ -194,9 +194,10 @@ def cmd_bench(args) -> int:
         rows = run_raster_bench(threads=args.threads)
         print(format_raster_bench(rows))
     elif args.what == "codec":
-        from baseline.codec.bench import format_codec_bench, run_codec_bench
+        from baseline.codec.bench import format_codec_bench, run_codec_bench, run_model_codec_bench
 
-        rows = run_codec_bench(n_anchors=args.anchors or 500_000)
+        rows = run_codec_bench(n_anchors=args.anchors or 500_000, threads=args.threads or 0)
+        rows += [run_model_codec_bench(r) for r in args.run]
         print(format_codec_bench(rows))
     elif args.what == "grid":
         from baseline.hac.bench import format_grid_bench, run_grid_bench
@@ -314,6 +315,8 @@ def main(argv=None) -> int:
     p.add_argument("--threads", type=int, default=None)
     p.add_argument("--anchors", type=int, default=None,
                    help="payload size (default: codec 500k, grid 100k)")
+    p.add_argument("--run", action="append", default=[],
+                   help="codec: also encode and decode this trained run folder (repeatable)")
     p.set_defaults(fn=cmd_bench)
 
     p = sub.add_parser("compare", help="train/encode/decode methods side by side: tables, BD-rate, plots")

@@ -85,3 +85,13 @@ def test_encode_with_float16_weights(trained, capsys):
     assert i16["total_bytes"] < i32["total_bytes"]
     assert decode_model(f16).header["weight_dtype"] == "float16"
     assert main(["eval", str(f16)]) == 0
+
+
+def test_bench_codec_with_a_trained_run(trained, capsys):
+    _, _, run = trained
+    assert main(["bench", "codec", "--anchors", "2000", "--threads", "1", "--run", str(run)]) == 0
+    out = capsys.readouterr().out
+    lines = [ln for ln in out.splitlines() if ln.startswith(("reference", "fast", "run"))]
+    assert [ln.split()[0] for ln in lines] == ["reference", "fast", "run"]
+    assert all(ln.rstrip().endswith("True") for ln in lines)     # every decode exact
+    assert str(run) in out
