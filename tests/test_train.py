@@ -60,3 +60,18 @@ def test_checkpoint_with_nan_is_refused(scene_dir, tmp_path):
     t2 = Trainer(cfg, scene, tmp_path / "n2", progress=False)
     with pytest.raises(ValueError, match="per_anchor.offsets.*NaN"):
         t2.load_checkpoint(ck)
+
+
+def test_threads_follow_the_cpu_affinity():
+    """`set_threads(0)` uses the cores this process may run on (e.g. under taskset), never more."""
+    import os
+    import subprocess
+    import sys
+
+    if not hasattr(os, "sched_setaffinity"):
+        pytest.skip("no CPU affinity on this platform")
+    code = ("import os; os.sched_setaffinity(0, {sorted(os.sched_getaffinity(0))[0]}); "
+            "import torch; from baseline.train.trainer import set_threads; "
+            "print(set_threads(0), torch.get_num_threads())")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.split() == ["1", "1"]

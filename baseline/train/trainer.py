@@ -29,9 +29,17 @@ from baseline.train.losses import lr_exp, reconstruction_loss
 CHECKPOINT_NAME = "checkpoint.pt"
 
 
+def available_cores() -> int:
+    """Cores this process may run on (its CPU affinity, e.g. under ``taskset``), not the machine's."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):  # platforms without affinity
+        return os.cpu_count() or 1
+
+
 def set_threads(n: int) -> int:
-    """Use ``n`` threads (0 = all cores) in torch and numba; never more than the cores."""
-    cores = os.cpu_count() or 1
+    """Use ``n`` threads (0 = all available cores) in torch and numba; never more than the cores."""
+    cores = available_cores()
     n = cores if n <= 0 else min(n, cores)
     torch.set_num_threads(n)
     try:
