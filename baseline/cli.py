@@ -220,7 +220,8 @@ def cmd_compare(args) -> int:
     try:
         run_compare(args.scene, args.out, vs=args.vs, lambdas=args.lambdas,
                     common_patches=args.patch, sets=sets, lpips_weights=args.lpips_weights,
-                    progress=not args.no_progress, plots=not args.no_plots)
+                    progress=not args.no_progress, plots=not args.no_plots, only=args.only,
+                    remeasure=args.remeasure)
     except KeyboardInterrupt:
         print(f"\ninterrupted: finished stages are kept in {args.out}; run the same command "
               f"again to resume", file=sys.stderr)
@@ -331,6 +332,12 @@ def main(argv=None) -> int:
     p.add_argument("--lpips-weights", default=None, help="LPIPS weights file (else unavailable)")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     p.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
+    p.add_argument("--only", action="append", default=None, metavar="METHOD",
+                   help="bring only this method's runs to the end and report them (repeat; "
+                   "'baseline' or a --vs value): split a comparison across processes sharing "
+                   "--out, then rerun without it for the full report")
+    p.add_argument("--remeasure", action="store_true",
+                   help="redo encode and decode+eval of trained runs (retake times and FPS)")
     _config_args(p)
     p.set_defaults(fn=cmd_compare)
 

@@ -186,3 +186,27 @@ def test_lpips_weights_redo_only_the_decoded_stage(scene, tmp_path, monkeypatch)
     after = _mtimes(spec.dir)
     assert after[MODEL_FILE] == before[MODEL_FILE] and after[CHECKPOINT_NAME] == before[CHECKPOINT_NAME]
     assert "VGG16 LPIPS with weights" in (out / "report.md").read_text()
+
+
+def test_only_splits_a_comparison_and_remeasure_retakes_timings(scene, tmp_path):
+    """--only trains and reports just the named method (the others untouched); a full run then
+    reuses it; --remeasure redoes encode + decode/eval of every run, writing the same bytes."""
+    out = tmp_path / "cmp"
+    kw = dict(common_patches=["demo"], sets=SETS, progress=False, plots=False, echo=False)
+    specs = plan_runs(out, parse_methods(["entropy-factorized"]), None, ["demo"], SETS)
+    with pytest.raises(ValueError, match="not a method"):
+        run_compare(scene, out, vs=["entropy-factorized"], only=["predict-gs"], **kw)
+    res = run_compare(scene, out, vs=["entropy-factorized"], only=["entropy-factorized"], **kw)
+    assert [r["method"] for r in res["runs"]] == ["entropy-factorized"]
+    assert res["only"] == ["entropy-factorized"]
+    assert not specs[0].dir.exists() and is_finished(specs[1])
+    full = run_compare(scene, out, vs=["entropy-factorized"], **kw)
+    rows = {r["method"]: r for r in full["runs"]}
+    assert rows[BASELINE]["stages_run"] == ["train", "encode", "decode+eval"]
+    assert rows["entropy-factorized"]["stages_run"] == []
+    again = run_compare(scene, out, vs=["entropy-factorized"], remeasure=True, **kw)
+    for r in again["runs"]:
+        assert r["stages_run"] == ["encode", "decode+eval"]
+        before = rows[r["method"]]
+        assert (r["bytes"], r["psnr"], r["ssim"]) == (before["bytes"], before["psnr"], before["ssim"])
+        assert r["train_time_s"] == before["train_time_s"]

@@ -209,8 +209,13 @@ def _stage_decoded(spec: RunSpec, scene_path: str, record: dict, lpips_fn,
 
 
 def run_one(spec: RunSpec, scene_path: str, lpips_fn=None, lpips: Optional[str] = None,
-            progress: bool = True, on_stage: Optional[Callable[[str], None]] = None) -> dict:
-    """Bring one run to the finished state (skipping stages already done); return its row."""
+            progress: bool = True, on_stage: Optional[Callable[[str], None]] = None,
+            remeasure: bool = False) -> dict:
+    """Bring one run to the finished state (skipping stages already done); return its row.
+
+    ``remeasure``: redo the encode and decode+eval stages of a trained run even when they are
+    recorded (the same bytes are written again; times and FPS are retaken, e.g. on a quiet
+    machine after runs were trained side by side)."""
     from baseline.run import train_run
     from baseline.train.trainer import set_threads
 
@@ -226,6 +231,9 @@ def run_one(spec: RunSpec, scene_path: str, lpips_fn=None, lpips: Optional[str] 
     record = _read_json(spec.dir / RECORD)
     if record.get("config_hash") != spec.hash or done:
         record = {}                      # (re)trained now: an older file no longer applies
+    elif remeasure:
+        record.pop("encode", None)
+        record.pop("decoded", None)
     record.update(method=spec.method.name, method_patches=list(spec.method.patches),
                   lmbda=spec.lmbda, config_hash=spec.hash, scene=scene_path)
     set_threads(spec.cfg.train.threads)
@@ -289,8 +297,17 @@ def _warm_up_rasterizer(specs: list[RunSpec]) -> None:
 def run_compare(scene: str | Path, out: str | Path, vs: list[str] = (),
                 lambdas: Optional[list[float]] = None, common_patches: list[str] = (),
                 sets: list[str] = (), lpips_weights: Optional[str] = None,
-                progress: bool = True, plots: bool = True, echo: bool = True) -> dict:
-    """Run (or resume) a comparison; write ``out/results.json``, ``out/report.md`` and plots."""
+                progress: bool = True, plots: bool = True, echo: bool = True,
+                only: Optional[list[str]] = None, remeasure: bool = False) -> dict:
+    """Run (or resume) a comparison; write ``out/results.json``, ``out/report.md`` and plots.
+
+    ``only``: bring only the runs of these methods (names as in the report: ``baseline``, a
+    ``--vs`` value) to the finished state, and report those; the others are left as they are.
+    This splits a comparison across processes or machines sharing ``out`` (e.g. one process per
+    core: ``taskset -c 0 pgs compare ... --only baseline`` beside ``taskset -c 1 ... --only
+    predict-gs``); a final invocation without it reuses every finished run for the full report.
+    ``remeasure``: see :func:`run_one`.
+    """
     from baseline.eval.metrics import load_lpips
     from baseline.eval.report import format_report, write_report
     from baseline.run import versions, write_json_atomic
@@ -303,6 +320,14 @@ def run_compare(scene: str | Path, out: str | Path, vs: list[str] = (),
     if lambdas is not None and len(set(lambdas)) != len(lambdas):
         raise ValueError(f"--lambda lists a value twice: {lambdas}")
     specs = plan_runs(out, methods, lambdas, list(common_patches), list(sets))
+    if only:
+        names = [m.name for m in methods]
+        unknown = [o for o in only if o not in names]
+        if unknown:
+            raise ValueError(f"--only {', '.join(unknown)}: not a method of this comparison "
+                             f"(methods: {', '.join(names)})")
+        specs = [s for s in specs if s.method.name in only]
+        methods = [m for m in methods if m.name in only]
     lpips_fn, lpips_reason = load_lpips(lpips_weights)
     lp_id = lpips_id(lpips_weights) if lpips_fn is not None else None
     out.mkdir(parents=True, exist_ok=True)
@@ -316,11 +341,12 @@ def run_compare(scene: str | Path, out: str | Path, vs: list[str] = (),
         "sets": list(sets),
         "lambdas": None if lambdas is None else [float(x) for x in lambdas],
         "lpips": f"measured with {lp_id}" if lpips_fn is not None else lpips_reason,
+        "only": list(only) if only else None,
         "versions": versions(),
         "complete": False,
         "runs": [],
     }
-    n_done = sum(is_finished(s, lp_id) for s in specs)
+    n_done = 0 if remeasure else sum(is_finished(s, lp_id) for s in specs)
     if echo:
         print(f"compare: {len(methods)} method(s) x {len(specs) // len(methods)} rate point(s) = "
               f"{len(specs)} run(s) on {scene_path}; {n_done} already finished in {out / 'runs'}")
@@ -338,7 +364,8 @@ def run_compare(scene: str | Path, out: str | Path, vs: list[str] = (),
             if echo:
                 tqdm.write(f"{head}: {s} ({spec.dir})")
 
-        row = run_one(spec, scene_path, lpips_fn, lp_id, progress=progress, on_stage=on_stage)
+        row = run_one(spec, scene_path, lpips_fn, lp_id, progress=progress, on_stage=on_stage,
+                      remeasure=remeasure)
         results["runs"].append(row)
         write_json_atomic(out / "results.json", results)       # partial results survive
         if echo:
