@@ -102,7 +102,7 @@ def cmd_render(args) -> int:
 
 
 def cmd_encode(args) -> int:
-    from baseline.codec.model_codec import encode_model, file_info, format_info
+    from baseline.codec.model_codec import encode_model, file_info, format_info, format_rate_check, rate_check
     from baseline.run import load_run, write_json_atomic
 
     trainer, scene = load_run(args.run)
@@ -120,6 +120,8 @@ def cmd_encode(args) -> int:
     print(format_info(file_info(args.output)))
     print(f"wrote {args.output}: {st['bytes']} bytes ({st['bytes'] / 2**20:.4f} MB), "
           f"{st['anchors']} anchors, encode {st['encode_s']:.2f} s")
+    if args.rate_check:
+        print(format_rate_check(rate_check(trainer.model, trainer.entropy, st)))
     path = Path(args.run) / "results.json"
     full = json.loads(path.read_text()) if path.exists() else {}
     if cfg is trainer.cfg:  # the run's own configuration: record it with the run
@@ -293,6 +295,8 @@ def main(argv=None) -> int:
     p.add_argument("-o", "--output", required=True)
     p.add_argument("--weights", choices=["float32", "float16"], default=None,
                    help="network weight precision in the file (default: the run's codec.weight_dtype)")
+    p.add_argument("--rate-check", action="store_true",
+                   help="print the training loss's bit estimate beside the bytes written, per section")
     p.set_defaults(fn=cmd_encode)
 
     p = sub.add_parser("decode", help="decode a .pgs file (PLY export, optional renders + metrics)")

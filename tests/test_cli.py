@@ -78,7 +78,8 @@ def test_encode_with_float16_weights(trained, capsys):
     f32, f16 = d / "w32.pgs", d / "w16.pgs"
     assert main(["encode", str(run), "-o", str(f32)]) == 0
     before = json.loads((run / "results.json").read_text()).get("encode")
-    assert main(["encode", str(run), "-o", str(f16), "--weights", "float16"]) == 0
+    assert main(["encode", str(run), "-o", str(f16), "--weights", "float16", "--rate-check"]) == 0
+    assert "rate check" in capsys.readouterr().out
     # the run's record keeps its own configuration's encoding
     assert json.loads((run / "results.json").read_text()).get("encode") == before
     i32, i16 = file_info(f32), file_info(f16)

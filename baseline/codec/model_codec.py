@@ -137,6 +137,35 @@ def encode_model(cfg, model, entropy, path: str | Path, extra_header: Optional[d
             "index": idx}
 
 
+@torch.no_grad()
+def rate_check(model, entropy, stats: dict) -> list[dict]:
+    """The training loss's bit estimate beside the bytes :func:`encode_model` wrote.
+
+    One row per coded attribute (the entropy model's estimate with rounding, on the anchors and
+    masks the encoder coded) and per binary hash grid (the hash-bit estimate of the rate loss),
+    ``{"section", "estimated_bytes", "written_bytes"}``. Call it right after ``encode_model``
+    with its ``stats``: the networks are then at the stored precision, as in the file.
+    """
+    idx, xyz_q, written = stats["index"], stats["xyz_q"], stats["sections"]
+    gmask = (torch.sigmoid(model.per_anchor["mask"].detach()[idx][..., 0]) > model.mask_threshold)
+    est = entropy.estimate_bits(xyz_q, model.coded_values(idx), gmask.float())
+    rows = [(name, bits) for name, bits in est.items()]
+    if hasattr(entropy, "grid"):
+        rows.append(("em.grid", float(entropy.grid.hash_bits())))
+    rows += [(f"provider.{name or 'grid'}", float(g.hash_bits())) for name, g in _grid_modules(model.provider)]
+    return [{"section": n, "estimated_bytes": b / 8.0, "written_bytes": int(written[n])}
+            for n, b in rows if n in written]
+
+
+def format_rate_check(rows: list[dict]) -> str:
+    lines = ["rate check: the training loss's estimate vs the bytes written",
+             f"{'section':<22}{'estimated B':>14}{'written B':>12}{'written/est':>13}"]
+    for r in rows:
+        ratio = r["written_bytes"] / r["estimated_bytes"] if r["estimated_bytes"] > 0 else float("nan")
+        lines.append(f"{r['section']:<22}{r['estimated_bytes']:>14.0f}{r['written_bytes']:>12d}{ratio:>13.4f}")
+    return "\n".join(lines)
+
+
 @dataclasses.dataclass
 class DecodedModel:
     cfg: object
