@@ -228,6 +228,11 @@ def cmd_compare(args) -> int:
         print(f"\ninterrupted: finished stages are kept in {args.out}; run the same command "
               f"again to resume", file=sys.stderr)
         return 130
+    if args.archive:
+        from baseline.eval.compare import archive_records
+
+        kept = archive_records(args.out, args.archive)
+        print(f"archived the records of {len(kept)} finished run(s) and the report to {args.archive}")
     return 0
 
 
@@ -342,6 +347,10 @@ def main(argv=None) -> int:
                    "--out, then rerun without it for the full report")
     p.add_argument("--remeasure", action="store_true",
                    help="redo encode and decode+eval of trained runs (retake times and FPS)")
+    p.add_argument("--archive", metavar="DIR", default=None,
+                   help="afterwards, copy the finished runs' records and the report to DIR "
+                        "(no checkpoints or model files; copy them back into an --out folder "
+                        "to report those runs without retraining)")
     _config_args(p)
     p.set_defaults(fn=cmd_compare)
 

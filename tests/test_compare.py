@@ -11,8 +11,8 @@ from baseline import registry
 from baseline.codec.model_codec import file_info
 from baseline.config import ConfigError
 from baseline.data.synthetic import make_scene
-from baseline.eval.compare import (BASELINE, MODEL_FILE, RECORD, is_finished, parse_methods,
-                                   plan_runs, run_compare)
+from baseline.eval.compare import (BASELINE, MODEL_FILE, RECORD, RECORD_FILES, archive_records,
+                                   is_finished, parse_methods, plan_runs, run_compare)
 from baseline.train.trainer import CHECKPOINT_NAME, Trainer
 
 ITERS = 24
@@ -210,3 +210,37 @@ def test_only_splits_a_comparison_and_remeasure_retakes_timings(scene, tmp_path)
         before = rows[r["method"]]
         assert (r["bytes"], r["psnr"], r["ssim"]) == (before["bytes"], before["psnr"], before["ssim"])
         assert r["train_time_s"] == before["train_time_s"]
+
+
+def test_archived_records_are_reported_without_retraining(scene, tmp_path):
+    """A run folder reduced to its records (no checkpoint, no model file) counts as finished: a
+    comparison copied elsewhere reports it as recorded, trains only what is missing, and
+    --remeasure leaves it alone; a run whose checkpoint is there but model file gone re-encodes."""
+    from baseline.eval.report import format_report
+
+    out = tmp_path / "cmp"
+    kw = dict(common_patches=["demo"], sets=SETS, progress=False, plots=False, echo=False)
+    first = run_compare(scene, out, vs=["entropy-factorized"], only=["baseline"], **kw)
+    base = first["runs"][0]
+    # archive: keep the records only, in a new comparison folder
+    arch = tmp_path / "archive"
+    kept = archive_records(out, arch)
+    assert [p.name for p in kept] == [first["runs"][0]["run_dir"].split("/")[-1]]
+    assert sorted(f.name for f in kept[0].iterdir()) == sorted(RECORD_FILES)
+    assert (arch / "report.md").exists() and (arch / "results.json").exists()
+    specs = plan_runs(arch, parse_methods(["entropy-factorized"]), None, ["demo"], SETS)
+    assert is_finished(specs[0]) and not is_finished(specs[1])
+    full = run_compare(scene, arch, vs=["entropy-factorized"], **kw)
+    rows = {r["method"]: r for r in full["runs"]}
+    assert rows[BASELINE]["stages_run"] == [] and rows[BASELINE]["records_only"]
+    assert (rows[BASELINE]["bytes"], rows[BASELINE]["psnr"]) == (base["bytes"], base["psnr"])
+    assert rows["entropy-factorized"]["stages_run"] == ["train", "encode", "decode+eval"]
+    assert not rows["entropy-factorized"]["records_only"]
+    assert "archived records" in format_report(full)
+    again = run_compare(scene, arch, vs=["entropy-factorized"], remeasure=True, **kw)
+    rows2 = {r["method"]: r for r in again["runs"]}
+    assert rows2[BASELINE]["stages_run"] == [] and rows2[BASELINE]["decode_s"] == base["decode_s"]
+    assert rows2["entropy-factorized"]["stages_run"] == ["encode", "decode+eval"]
+    # a model file missing beside its checkpoint is re-encoded, not taken from the record
+    (specs[1].dir / MODEL_FILE).unlink()
+    assert not is_finished(specs[1])

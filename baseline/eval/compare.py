@@ -19,6 +19,11 @@ comparison picks up where it stopped:
    decoded-model cache (``build_cache`` / ``clear_cache``, Predict-GS's SFP) are timed with and
    without it. Done when ``compare.json`` holds these (with LPIPS if weights are given now).
 
+A run folder reduced to its records (``config.toml``, ``scene.json``, ``results.json``,
+``compare.json``: no checkpoint, no model file) counts as finished and is reported from them, so
+finished runs can be archived and a comparison completed later, on another machine, by copying
+them into its ``--out`` folder; only the missing runs are trained.
+
 Every number in the report is measured in one of these stages or read from their records.
 """
 from __future__ import annotations
@@ -120,11 +125,26 @@ def _trained(spec: RunSpec) -> Optional[dict]:
     return None
 
 
+def records_only(spec: RunSpec) -> bool:
+    """The run folder keeps its records but neither its checkpoint nor its model file.
+
+    That is how finished runs are archived (e.g. committed beside a report): their measurements
+    are reported from ``results.json`` and ``compare.json`` as they were taken; nothing can be
+    re-encoded or remeasured from them.
+    """
+    from baseline.run import CHECKPOINT_NAME
+
+    return not (spec.dir / MODEL_FILE).exists() and not (spec.dir / CHECKPOINT_NAME).exists()
+
+
 def _encoded(spec: RunSpec, record: dict) -> bool:
     enc = record.get("encode")
+    if not enc or record.get("config_hash") != spec.hash:
+        return False
     pgs = spec.dir / MODEL_FILE
-    return bool(enc) and pgs.exists() and pgs.stat().st_size == enc.get("bytes") \
-        and record.get("config_hash") == spec.hash
+    if pgs.exists():
+        return pgs.stat().st_size == enc.get("bytes")
+    return records_only(spec) and _trained(spec) is not None
 
 
 def lpips_id(weights: Optional[str]) -> Optional[str]:
@@ -231,6 +251,9 @@ def run_one(spec: RunSpec, scene_path: str, lpips_fn=None, lpips: Optional[str] 
     record = _read_json(spec.dir / RECORD)
     if record.get("config_hash") != spec.hash or done:
         record = {}                      # (re)trained now: an older file no longer applies
+    elif remeasure and records_only(spec):
+        tqdm.write(f"note: {spec.label} keeps only its records (no checkpoint, no model file): "
+                   f"reported as recorded, not remeasured")
     elif remeasure:
         record.pop("encode", None)
         record.pop("decoded", None)
@@ -275,7 +298,36 @@ def make_row(spec: RunSpec, res: dict, record: dict) -> dict:
         "pre_encode": {k: res["test"].get(k) for k in ("psnr", "ssim", "fps")},
         "protocol": res.get("protocol", {}),
         "train_versions": res.get("versions", {}),
+        "records_only": records_only(spec),
     }
+
+
+RECORD_FILES = ("config.toml", "scene.json", "results.json", RECORD)
+
+
+def archive_records(out: str | Path, dest: str | Path) -> list[Path]:
+    """Copy the records of the finished runs of comparison ``out`` (and its report, results
+    and plots) to ``dest``: a few KB per run, no checkpoints or model files. Copied into another
+    comparison's ``--out`` folder they are reported as finished (see :func:`records_only`).
+    Returns the run folders archived."""
+    import shutil
+
+    out, dest = Path(out), Path(dest)
+    done = []
+    for run in sorted((out / "runs").glob("*")) if (out / "runs").is_dir() else []:
+        rec = _read_json(run / RECORD)
+        res = _read_json(run / "results.json")
+        if not (rec.get("encode") and rec.get("decoded") and "test" in res):
+            continue                       # not finished: nothing to keep yet
+        (dest / "runs" / run.name).mkdir(parents=True, exist_ok=True)
+        for name in RECORD_FILES:
+            shutil.copy2(run / name, dest / "runs" / run.name / name)
+        done.append(dest / "runs" / run.name)
+    for f in out.iterdir() if out.is_dir() else []:
+        if f.is_file() and f.suffix in (".md", ".json", ".png"):
+            dest.mkdir(parents=True, exist_ok=True)
+            shutil.copy2(f, dest / f.name)
+    return done
 
 
 # ------------------------------------------------------------------------------ the command

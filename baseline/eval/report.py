@@ -326,6 +326,10 @@ def protocol_lines(results: dict) -> list[tuple[str, str]]:
     if any(v and v != cur for v in tv):
         items.append(("note", "some runs were trained with other versions: see each run's "
                               "results.json"))
+    kept = [f"{r['method']} {_lam(r)}" for r in runs if r.get("records_only")]
+    if kept:
+        items.append(("from records", ", ".join(kept) + ": reported from their archived records "
+                      "(measured when they were trained; no model file here)"))
     return items
 
 
