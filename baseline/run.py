@@ -18,7 +18,7 @@ from baseline.config import Config, build_config, from_toml
 from baseline.train.trainer import CHECKPOINT_NAME, Trainer
 
 
-def load_scene_for(cfg: Config, scene_path: str):
+def load_scene_for(cfg: Config, scene_path: str, progress: bool = True):
     from baseline.data.scene import load_scene
 
     bg = (1.0, 1.0, 1.0) if cfg.data.background == "white" else (0.0, 0.0, 0.0)
@@ -26,7 +26,8 @@ def load_scene_for(cfg: Config, scene_path: str):
                       eval=cfg.data.eval, test_every=cfg.data.test_every, background=bg,
                       cache_dir=cfg.data.cache_dir or None,
                       random_init_points=cfg.data.random_init_points,
-                      random_init_extent=cfg.data.random_init_extent, seed=cfg.train.seed)
+                      random_init_extent=cfg.data.random_init_extent, seed=cfg.train.seed,
+                      progress=progress)
 
 
 def write_json_atomic(path: Path, data: dict) -> None:
@@ -63,7 +64,7 @@ def train_run(scene_path: str, out: str | Path, cfg: Config, resume: bool = Fals
     """Train (or resume) a run in ``out`` and evaluate it on the test views."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    scene = load_scene_for(cfg, scene_path)
+    scene = load_scene_for(cfg, scene_path, progress=progress)
     trainer = Trainer(cfg, scene, out, progress=progress)
     ck = out / CHECKPOINT_NAME
     if resume and ck.exists():
@@ -117,7 +118,7 @@ def load_run(run_dir: str | Path, progress: bool = False) -> tuple[Trainer, obje
             raise FileNotFoundError(f"{run_dir} is not a finished run folder: {name} is missing")
     cfg = from_toml(run_dir / "config.toml")
     scene_path = json.loads((run_dir / "scene.json").read_text())["path"]
-    scene = load_scene_for(cfg, scene_path)
+    scene = load_scene_for(cfg, scene_path, progress=progress)
     trainer = Trainer(cfg, scene, run_dir, progress=progress)
     trainer.load_checkpoint(run_dir / CHECKPOINT_NAME)
     return trainer, scene

@@ -7,7 +7,7 @@ import torch
 
 from baseline.config import build_config
 from baseline.scaffold.anchors import init_log_scaling, knn_mean_sq_dist, voxelize
-from baseline.scaffold.densify import ScaffoldDensify, grow_anchors
+from baseline.scaffold.densify import ScaffoldDensify, _unique_rows, grow_anchors
 from baseline.scaffold.build import build_model
 
 
@@ -108,6 +108,20 @@ def test_growing_hand_made_case():
     st = opt.state[model.per_anchor["feat"]]
     assert st["exp_avg"].shape == (4, 50)
     assert (st["exp_avg"][:2] != 0).all() and (st["exp_avg"][2:] == 0).all()
+
+
+@pytest.mark.parametrize("shape,span", [((0, 3), 5), ((1, 3), 5), ((3000, 3), 4),
+                                        ((5000, 3), 100000), ((2000, 2), 7), ((500, 3), 2 ** 40)])
+def test_unique_rows_matches_torch(shape, span):
+    """The packed-key unique used by growing gives torch.unique(dim=0)'s rows, order and inverse
+    (negative cells included; spans too wide to pack take torch's own path)."""
+    g = torch.Generator().manual_seed(shape[0])
+    a = torch.randint(-span, span, shape, generator=g)
+    if shape[0] > 10:
+        a = torch.cat([a, a[: shape[0] // 3]])          # duplicates
+    rows, inv = _unique_rows(a)
+    ref_rows, ref_inv = torch.unique(a, dim=0, return_inverse=True)
+    assert torch.equal(rows, ref_rows) and torch.equal(inv, ref_inv)
 
 
 def test_reference_level_skip_quirk():

@@ -50,6 +50,23 @@ def test_resume_is_exact(scene_dir, tmp_path):
     assert losses_a == losses_b
 
 
+def test_train_log_is_one_curve_across_a_resume(scene_dir, tmp_path):
+    cfg = _cfg(40, "train.log_every=5", "train.checkpoint_every=0")
+    scene = load_scene(scene_dir)
+    a = Trainer(cfg, scene, tmp_path / "r", progress=False)
+    a.train(until=20)                              # checkpoint at 20, log lines 5..20
+    with (tmp_path / "r" / "train_log.jsonl").open("a") as f:   # a killed run: lines past the
+        f.write(json.dumps({"it": 25}) + "\n" + '{"it": 3')     # checkpoint, a torn last line
+    b = Trainer(cfg, scene, tmp_path / "r", progress=False)
+    b.load_checkpoint(tmp_path / "r" / "checkpoint.pt")
+    b.train()
+    rows = [json.loads(x) for x in (tmp_path / "r" / "train_log.jsonl").read_text().splitlines()]
+    assert [r["it"] for r in rows] == list(range(5, 41, 5))
+    assert all(np.isfinite(r["loss"]) and r["anchors"] > 0 and r["gaussians"] > 0 for r in rows)
+    t = [r["train_time"] for r in rows]
+    assert t == sorted(t) and t[0] > 0
+
+
 def test_checkpoint_with_nan_is_refused(scene_dir, tmp_path):
     cfg = _cfg(5)
     scene = load_scene(scene_dir)

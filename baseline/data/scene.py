@@ -95,9 +95,9 @@ class _ImageStore:
             write_png_atomic(r.cache_file, r.build())
         return r.cache_file
 
-    def prefetch(self, desc: str) -> None:
+    def prefetch(self, desc: str, progress: bool = True) -> None:
         todo = [i for i, r in self.recipes.items() if not r.cache_file.is_file()]
-        for i in tqdm(todo, desc=desc, unit="img", disable=not todo):
+        for i in tqdm(todo, desc=desc, unit="img", disable=not (todo and progress)):
             self.ensure(i)
 
     def load_u8(self, idx: int) -> np.ndarray:
@@ -244,7 +244,7 @@ def load_scene(path: str | os.PathLike, resolution: int = -1, images: str | None
                eval: bool = True, test_every: int = 8, background=(0.0, 0.0, 0.0),
                cache_dir: str | os.PathLike | None = None, random_init_points: int = 10000,
                random_init_extent: float = 1.3, seed: int = 0, undistort: str = "crop",
-               prefetch: bool = True) -> Scene:
+               prefetch: bool = True, progress: bool = True) -> Scene:
     """Load a COLMAP or Blender / instant-ngp scene.
 
     Args:
@@ -369,5 +369,6 @@ def load_scene(path: str | os.PathLike, resolution: int = -1, images: str | None
                   points=points, colors=colors, extent=cameras_extent(train), background=bg,
                   protocol=protocol, _store=_ImageStore(recipes))
     if prefetch:
-        scene._store.prefetch(f"caching {path.name} images {sizes[0][0]}x{sizes[0][1]}")
+        scene._store.prefetch(f"caching {path.name} images {sizes[0][0]}x{sizes[0][1]}",
+                              progress=progress)
     return scene

@@ -21,8 +21,30 @@ from baseline import registry
 MIN_INTERVAL = 10
 
 
-def _unique_rows(a: torch.Tensor):
-    return torch.unique(a, dim=0, return_inverse=True)
+def _unique_rows(a: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """``torch.unique(a, dim=0, return_inverse=True)`` for integer rows ``a`` [C, D].
+
+    Same result (unique rows in lexicographic order, inverse [C]), computed on one packed int64
+    key per row: torch's ``dim=0`` path sorts whole rows and was the largest single cost of a
+    growing step on truck (the 1-D sort of packed keys is several times faster). Each column is
+    offset by its minimum and given ``63 // D`` bits, most significant first, so the order of the
+    keys is the lexicographic order of the rows; spans that do not fit fall back to torch.
+    """
+    C, D = a.shape
+    bits = 63 // max(D, 1)
+    if C == 0 or D == 0:
+        return torch.unique(a, dim=0, return_inverse=True)
+    lo = a.min(0).values
+    b = a - lo
+    if int(b.max()) >= (1 << bits):
+        return torch.unique(a, dim=0, return_inverse=True)
+    key = b[:, 0].clone()
+    for d in range(1, D):
+        key = (key << bits) | b[:, d]
+    uk, inv = torch.unique(key, sorted=True, return_inverse=True)
+    mask = (1 << bits) - 1
+    rows = torch.stack([(uk >> (bits * (D - 1 - d))) & mask for d in range(D)], 1)
+    return rows + lo, inv
 
 
 def grow_anchors(model, grads: torch.Tensor, eligible: torch.Tensor, cfg, voxel_size: float,
@@ -59,8 +81,8 @@ def grow_anchors(model, grads: torch.Tensor, eligible: torch.Tensor, cfg, voxel_
             sel = cand.nonzero()[:, 0]
             cells = torch.round(all_xyz[sel].double() / size).long()          # [C,3]
             uniq, inverse = _unique_rows(cells)                                # [U,3], [C]
-            existing = torch.unique(torch.round(model.xyz.detach().double() / size).long(), dim=0)
-            both, inv_both = torch.unique(torch.cat([existing, uniq], 0), dim=0, return_inverse=True)
+            existing = _unique_rows(torch.round(model.xyz.detach().double() / size).long())[0]
+            both, inv_both = _unique_rows(torch.cat([existing, uniq], 0))
             occupied = torch.zeros(len(both), dtype=torch.bool)
             occupied[inv_both[: len(existing)]] = True
             free = ~occupied[inv_both[len(existing):]]                         # [U]

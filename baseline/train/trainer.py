@@ -27,6 +27,7 @@ from baseline.scaffold.build import build_entropy, build_model, entropy_param_gr
 from baseline.train.losses import lr_exp, reconstruction_loss
 
 CHECKPOINT_NAME = "checkpoint.pt"
+TRAIN_LOG_NAME = "train_log.jsonl"
 
 
 def available_cores() -> int:
@@ -197,6 +198,7 @@ class Trainer:
         (self.out / "config.toml").write_text(to_toml(cfg))
         bar = tqdm(total=total, initial=self.iteration, desc="train", disable=not self.progress,
                    dynamic_ncols=True)
+        log = self._open_log()
         last = {}
         ema_loss = None
         while self.iteration < total:
@@ -213,12 +215,35 @@ class Trainer:
                 if "bpp" in terms:
                     post["bits"] = f"{terms['bpp']:.2f}"
                 bar.set_postfix(post, refresh=False)
+                log.write(json.dumps({"it": it, "train_time": round(self.train_time, 3),
+                                      "loss_ema": round(ema_loss, 6), **terms,
+                                      "anchors": self.model.n_anchors, "phase": self.phase},
+                                     default=float) + "\n")
+                log.flush()
             bar.update(1)
             if ck and it % ck == 0 and it < total:
                 self.save_checkpoint()
         bar.close()
+        log.close()
         self.save_checkpoint()
         return last
+
+    def _open_log(self):
+        """The run's training log (``train_log.jsonl``: one JSON line every ``log_every``
+        iterations with the loss terms, PSNR, anchor and Gaussian counts, phase and the training
+        time so far), opened for appending. Lines past the current iteration (written after the
+        checkpoint a resumed run restarts from) are dropped first, so the log stays one curve."""
+        path = self.out / TRAIN_LOG_NAME
+        if path.is_file():
+            keep = []
+            for line in path.read_text().splitlines():
+                try:
+                    if json.loads(line)["it"] <= self.iteration:
+                        keep.append(line)
+                except (ValueError, KeyError, TypeError):
+                    break                   # a torn last line (killed mid-write): stop there
+            path.write_text("".join(x + "\n" for x in keep))
+        return path.open("a")
 
     # ------------------------------------------------------------------------- checkpoints
     def state_dict(self) -> dict:
