@@ -52,7 +52,8 @@ def cmd_train(args) -> int:
     from baseline.run import train_run
 
     cfg = _build_cfg(args)
-    res = train_run(args.scene, args.out, cfg, resume=args.resume)
+    res = train_run(args.scene, args.out, cfg, resume=args.resume,
+                    progress=not args.no_progress)
     _print_results(res)
     return 0
 
@@ -278,6 +279,8 @@ def main(argv=None) -> int:
     p.add_argument("scene")
     p.add_argument("--out", required=True)
     p.add_argument("--resume", action="store_true", help="continue from the run's checkpoint")
+    p.add_argument("--no-progress", action="store_true",
+                   help="no progress bars (follow OUT/train_log.jsonl instead)")
     _config_args(p)
     p.set_defaults(fn=cmd_train)
 

@@ -20,7 +20,7 @@ def trained(tmp_path_factory):
     # 150 iterations: HAC's phase milestones (3k / 10k of 30k) scale to 15 / 50
     assert main(["train", str(scene), "--out", str(run), "--patch", "demo",
                  "--set", "train.iterations=150", "--set", "train.threads=1",
-                 "--set", "train.log_every=1000"]) == 0
+                 "--set", "train.log_every=1000", "--no-progress"]) == 0
     return d, scene, run
 
 
@@ -30,6 +30,8 @@ def test_train_writes_a_run_folder(trained):
     assert res["iterations"] == 150 and res["anchors"] > 0
     assert np.isfinite(res["test"]["psnr"]) and res["test"]["lpips"] is None
     assert (run / "config.toml").exists() and (run / "checkpoint.pt").exists()
+    last = json.loads((run / "train_log.jsonl").read_text().splitlines()[-1])
+    assert last["it"] == 150 and last["train_time"] > 0 and last["anchors"] == res["anchors"]
 
 
 def test_eval_encode_info_decode_render_export(trained, capsys):
