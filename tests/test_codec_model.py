@@ -8,7 +8,8 @@ import pytest
 import torch
 
 from baseline.codec.container import BitstreamError, read_container
-from baseline.codec.model_codec import decode_model, encode_model, file_info, format_rate_check, rate_check
+from baseline.codec.model_codec import (decode_model, encode_model, file_info, format_info,
+                                        format_rate_check, rate_check)
 from baseline.config import build_config
 from baseline.data.scene import load_scene
 from baseline.data.synthetic import make_scene
@@ -118,6 +119,9 @@ def test_info_groups_sum_to_file_size(encoded):
     info = file_info(encoded["path"])
     assert sum(info["groups"].values()) == info["total_bytes"] == encoded["path"].stat().st_size
     assert "feature" in info["groups"] and "hash" in info["groups"]
+    gm = decode_model(encoded["path"]).model.gaussian_mask()
+    assert info["masks_on"] == {"on": int((gm > 0).sum()), "total": gm.numel()}
+    assert f"Gaussian masks on: {info['masks_on']['on']} of" in format_info(info)
     names = [r["section"] for r in info["sections"]]
     if encoded["trainer"].cfg.model.feature_provider == "sfp":
         assert "residual" in names and "provider.grid" in names and "feat" not in names

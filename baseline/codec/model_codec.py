@@ -266,8 +266,15 @@ def file_info(path: str | Path) -> dict:
     for r in rows:
         groups[r["group"]] = groups.get(r["group"], 0) + r["bytes"]
     groups["header+framing"] = total - sum(r["bytes"] for r in rows)
-    return {"total_bytes": total, "sections": rows, "groups": groups, "n_anchors": header.get("n_anchors"),
+    info = {"total_bytes": total, "sections": rows, "groups": groups,
+            "n_anchors": header.get("n_anchors"),
             "header": {k: header[k] for k in ("n_anchors", "n_offsets", "weight_dtype") if k in header}}
+    if "masks" in sections:              # how many neural Gaussians the decoder keeps
+        from baseline.codec.rangecoder import bernoulli_counts
+
+        n, on = bernoulli_counts(sections["masks"], what="section 'masks'")
+        info["masks_on"] = {"on": on, "total": n}
+    return info
 
 
 def format_info(info: dict) -> str:
@@ -282,4 +289,9 @@ def format_info(info: dict) -> str:
     for g, b in sorted(info["groups"].items(), key=lambda kv: -kv[1]):
         lines.append(f"{g:<38}{b:>12}{b / mb:>10.4f}{100 * b / tot:>7.1f}%")
     lines.append(f"{'total (file size)':<38}{tot:>12}{tot / mb:>10.4f}")
+    m = info.get("masks_on")
+    if m:
+        lines.append("")
+        lines.append(f"Gaussian masks on: {m['on']} of {m['total']} "
+                     f"({100 * m['on'] / max(m['total'], 1):.1f}%; the neural Gaussians kept)")
     return "\n".join(lines)

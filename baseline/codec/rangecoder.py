@@ -93,6 +93,17 @@ def encode_bernoulli(bits) -> bytes:
     return head + _words_to_bytes(enc.get_compressed())
 
 
+def bernoulli_counts(blob, what: str = "bernoulli") -> Tuple[int, int]:
+    """``(n, n_ones)`` of an :func:`encode_bernoulli` stream, read from its header (no decoding)."""
+    blob = bytes(blob[:_BERN_HDR.size])
+    if len(blob) < _BERN_HDR.size:
+        raise BitstreamError(f"{what}: truncated Bernoulli header ({len(blob)} bytes)")
+    tag, n, n1 = _BERN_HDR.unpack_from(blob)
+    if tag != _BERN_TAG or n1 > n:
+        raise BitstreamError(f"{what}: not a Bernoulli stream")
+    return int(n), int(n1)
+
+
 def decode_bernoulli(blob, expected_n: Optional[int] = None, what: str = "bernoulli") -> np.ndarray:
     """Inverse of :func:`encode_bernoulli`: uint8 array of 0/1 (flat)."""
     blob = bytes(blob)
