@@ -94,30 +94,27 @@ def encode_bernoulli(bits) -> bytes:
 
 
 def bernoulli_counts(blob, what: str = "bernoulli") -> Tuple[int, int]:
-    """``(n, n_ones)`` of an :func:`encode_bernoulli` stream, read from its header (no decoding)."""
-    blob = bytes(blob[:_BERN_HDR.size])
-    if len(blob) < _BERN_HDR.size:
-        raise BitstreamError(f"{what}: truncated Bernoulli header ({len(blob)} bytes)")
-    tag, n, n1 = _BERN_HDR.unpack_from(blob)
-    if tag != _BERN_TAG or n1 > n:
+    """``(n, n_ones)`` of an :func:`encode_bernoulli` stream, read and checked from its header
+    (no decoding; :func:`decode_bernoulli` starts with it)."""
+    head = bytes(blob[:_BERN_HDR.size])
+    if len(head) < _BERN_HDR.size:
+        raise BitstreamError(f"{what}: truncated Bernoulli header ({len(head)} bytes)")
+    tag, n, n1 = _BERN_HDR.unpack_from(head)
+    if tag != _BERN_TAG:
         raise BitstreamError(f"{what}: not a Bernoulli stream")
+    if n1 > n:
+        raise BitstreamError(f"{what}: count of ones {n1} exceeds length {n}")
+    if n > MAX_BERNOULLI:
+        raise BitstreamError(f"{what}: absurd length {n}")
     return int(n), int(n1)
 
 
 def decode_bernoulli(blob, expected_n: Optional[int] = None, what: str = "bernoulli") -> np.ndarray:
     """Inverse of :func:`encode_bernoulli`: uint8 array of 0/1 (flat)."""
     blob = bytes(blob)
-    if len(blob) < _BERN_HDR.size:
-        raise BitstreamError(f"{what}: truncated Bernoulli header ({len(blob)} bytes)")
-    tag, n, n1 = _BERN_HDR.unpack_from(blob)
-    if tag != _BERN_TAG:
-        raise BitstreamError(f"{what}: not a Bernoulli stream")
+    n, n1 = bernoulli_counts(blob, what)
     if expected_n is not None and n != expected_n:
         raise BitstreamError(f"{what}: holds {n} values, expected {expected_n}")
-    if n1 > n:
-        raise BitstreamError(f"{what}: count of ones {n1} exceeds length {n}")
-    if n > MAX_BERNOULLI:
-        raise BitstreamError(f"{what}: absurd length {n}")
     payload = blob[_BERN_HDR.size:]
     if n1 == 0 or n1 == n:
         if payload:

@@ -31,9 +31,9 @@ def _unique_rows(a: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     keys is the lexicographic order of the rows; spans that do not fit fall back to torch.
     """
     C, D = a.shape
-    bits = 63 // max(D, 1)
     if C == 0 or D == 0:
         return torch.unique(a, dim=0, return_inverse=True)
+    bits = 63 // D
     lo = a.min(0).values
     b = a - lo
     if int(b.max()) >= (1 << bits):
@@ -81,7 +81,7 @@ def grow_anchors(model, grads: torch.Tensor, eligible: torch.Tensor, cfg, voxel_
             sel = cand.nonzero()[:, 0]
             cells = torch.round(all_xyz[sel].double() / size).long()          # [C,3]
             uniq, inverse = _unique_rows(cells)                                # [U,3], [C]
-            existing = _unique_rows(torch.round(model.xyz.detach().double() / size).long())[0]
+            existing = torch.round(model.xyz.detach().double() / size).long()   # [N,3], repeats ok
             both, inv_both = _unique_rows(torch.cat([existing, uniq], 0))
             occupied = torch.zeros(len(both), dtype=torch.bool)
             occupied[inv_both[: len(existing)]] = True

@@ -198,33 +198,34 @@ class Trainer:
         (self.out / "config.toml").write_text(to_toml(cfg))
         bar = tqdm(total=total, initial=self.iteration, desc="train", disable=not self.progress,
                    dynamic_ncols=True)
-        log = self._open_log()
-        last = {}
-        ema_loss = None
-        while self.iteration < total:
-            it = self.iteration + 1
-            t0 = time.perf_counter()
-            terms = self.step(it)
-            self.train_time += time.perf_counter() - t0
-            self.iteration = it
-            ema_loss = terms["loss"] if ema_loss is None else 0.9 * ema_loss + 0.1 * terms["loss"]
-            last = terms
-            if it % cfg.train.log_every == 0 or it == total:
-                post = {"loss": f"{ema_loss:.4f}", "psnr": f"{terms['psnr']:.2f}",
-                        "anchors": self.model.n_anchors, "gs": terms["gaussians"], "ph": self.phase}
-                if "bpp" in terms:
-                    post["bits"] = f"{terms['bpp']:.2f}"
-                bar.set_postfix(post, refresh=False)
-                log.write(json.dumps({"it": it, "train_time": round(self.train_time, 3),
-                                      "loss_ema": round(ema_loss, 6), **terms,
-                                      "anchors": self.model.n_anchors, "phase": self.phase},
-                                     default=float) + "\n")
-                log.flush()
-            bar.update(1)
-            if ck and it % ck == 0 and it < total:
-                self.save_checkpoint()
-        bar.close()
-        log.close()
+        with self._open_log() as log:
+            last = {}
+            ema_loss = None
+            while self.iteration < total:
+                it = self.iteration + 1
+                t0 = time.perf_counter()
+                terms = self.step(it)
+                self.train_time += time.perf_counter() - t0
+                self.iteration = it
+                ema_loss = (terms["loss"] if ema_loss is None
+                            else 0.9 * ema_loss + 0.1 * terms["loss"])
+                last = terms
+                if it % cfg.train.log_every == 0 or it == total:
+                    post = {"loss": f"{ema_loss:.4f}", "psnr": f"{terms['psnr']:.2f}",
+                            "anchors": self.model.n_anchors, "gs": terms["gaussians"],
+                            "ph": self.phase}
+                    if "bpp" in terms:
+                        post["bits"] = f"{terms['bpp']:.2f}"
+                    bar.set_postfix(post, refresh=False)
+                    log.write(json.dumps({"it": it, "train_time": round(self.train_time, 3),
+                                          "loss_ema": round(ema_loss, 6), **terms,
+                                          "anchors": self.model.n_anchors, "phase": self.phase},
+                                         default=float) + "\n")
+                    log.flush()
+                bar.update(1)
+                if ck and it % ck == 0 and it < total:
+                    self.save_checkpoint()
+            bar.close()
         self.save_checkpoint()
         return last
 
