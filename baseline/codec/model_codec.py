@@ -29,9 +29,9 @@ import torch
 import torch.nn as nn
 
 from baseline.codec.container import BitstreamError, read_container, write_container
-from baseline.codec.rangecoder import (anchor_bounds, decode_bernoulli, dequantize_positions,
-                                       encode_bernoulli, pack_positions, quantize_positions,
-                                       unpack_positions)
+from baseline.codec.rangecoder import (anchor_bounds, bernoulli_counts, decode_bernoulli,
+                                       dequantize_positions, encode_bernoulli, pack_positions,
+                                       quantize_positions, unpack_positions)
 from baseline.codec.weights import pack_state_dict, round_module_, unpack_state_dict
 
 FORMAT = "pgs-anchor-model"
@@ -270,8 +270,6 @@ def file_info(path: str | Path) -> dict:
             "n_anchors": header.get("n_anchors"),
             "header": {k: header[k] for k in ("n_anchors", "n_offsets", "weight_dtype") if k in header}}
     if "masks" in sections:              # how many neural Gaussians the decoder keeps
-        from baseline.codec.rangecoder import bernoulli_counts
-
         n, on = bernoulli_counts(sections["masks"], what="section 'masks'")
         info["masks_on"] = {"on": on, "total": n}
     return info

@@ -196,9 +196,8 @@ class Trainer:
         ck = cfg.train.at(cfg.train.checkpoint_every) if checkpoint_every is None else checkpoint_every
         self.out.mkdir(parents=True, exist_ok=True)
         (self.out / "config.toml").write_text(to_toml(cfg))
-        bar = tqdm(total=total, initial=self.iteration, desc="train", disable=not self.progress,
-                   dynamic_ncols=True)
-        with self._open_log() as log:
+        with tqdm(total=total, initial=self.iteration, desc="train", disable=not self.progress,
+                  dynamic_ncols=True) as bar, self._open_log() as log:
             last = {}
             ema_loss = None
             while self.iteration < total:
@@ -225,7 +224,6 @@ class Trainer:
                 bar.update(1)
                 if ck and it % ck == 0 and it < total:
                     self.save_checkpoint()
-            bar.close()
         self.save_checkpoint()
         return last
 
