@@ -134,7 +134,7 @@ def cmd_encode(args) -> int:
 
 def cmd_decode(args) -> int:
     from baseline.codec.model_codec import decode_model
-    from baseline.eval.export import write_ply
+    from baseline.eval.export import export_run_ply
     from baseline.run import Renderable, write_json_atomic
 
     out = Path(args.output or Path(args.file).with_suffix(""))
@@ -155,8 +155,6 @@ def cmd_decode(args) -> int:
             prov.build_cache(r.model.xyz)
             t["fps_no_cache"] = nc["fps"]
             print(f"FPS without the f_c cache {nc['fps']:.1f} (with {t['fps']:.1f})")
-        from baseline.eval.export import export_run_ply
-
         export_run_ply(r.model, r.scene.train_cameras, out / "point_cloud.ply")
     write_json_atomic(out / "results.json", res)
     return 0
@@ -252,7 +250,7 @@ def cmd_demo(args) -> int:
         run_compare(str(scene), out, vs=args.vs or ["predict-gs"], lambdas=args.lambdas,
                     common_patches=["demo"] + args.patch, sets=args.set, progress=True, plots=True)
     except KeyboardInterrupt:
-        print(f"\ninterrupted: run ./run.sh demo again to resume", file=sys.stderr)
+        print("\ninterrupted: run ./run.sh demo again to resume", file=sys.stderr)
         return 130
     print(f"demo wall time {time.perf_counter() - t0:.1f} s; report in {out / 'report.md'}")
     return 0

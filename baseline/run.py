@@ -6,15 +6,14 @@ how it was loaded), ``checkpoint.pt``, ``results.json`` and ``renders/``.
 from __future__ import annotations
 
 import json
-import os
 import platform
-import time
 from pathlib import Path
 from typing import Optional
 
 import torch
 
-from baseline.config import Config, build_config, from_toml
+from baseline.config import Config, from_toml
+from baseline.fileio import write_text_atomic
 from baseline.train.trainer import CHECKPOINT_NAME, Trainer
 
 
@@ -31,9 +30,8 @@ def load_scene_for(cfg: Config, scene_path: str, progress: bool = True):
 
 
 def write_json_atomic(path: Path, data: dict) -> None:
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    tmp.write_text(json.dumps(data, indent=2, default=_json_default))
-    os.replace(tmp, path)
+    """``data`` as indented JSON (tensors and numpy scalars converted), written atomically."""
+    write_text_atomic(path, json.dumps(data, indent=2, default=_json_default))
 
 
 def _json_default(o):

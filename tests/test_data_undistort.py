@@ -7,6 +7,7 @@ import OpenImageIO as oiio
 import pytest
 
 import baseline.data.images as images_mod
+import baseline.fileio as fileio_mod
 from baseline.data.errors import SceneError
 from baseline.data.images import read_image, resize_area, write_png_atomic
 from baseline.data.undistort import (SourceCamera, choose_pinhole, distort_pixels, remap,
@@ -160,7 +161,7 @@ def test_write_png_atomic(tmp_path, monkeypatch):
 
     def boom(src, dst):
         raise OSError("disk full")
-    monkeypatch.setattr(images_mod.os, "replace", boom)
+    monkeypatch.setattr(fileio_mod.os, "replace", boom)
     with pytest.raises(OSError, match="disk full"):
         write_png_atomic(tmp_path / "sub" / "y.png", img)
     assert sorted(p.name for p in (tmp_path / "sub").iterdir()) == ["x.png"]

@@ -21,18 +21,20 @@ before anything is allocated. Each payload has its own CRC32, so a flipped byte 
 the section's name. Every problem raises :class:`BitstreamError` (a ``ValueError``) whose
 message names the file part; nothing else escapes the parser.
 
-Writing is atomic: a temporary file in the destination folder, fsync, then ``os.replace``.
+Writing is atomic (:mod:`baseline.fileio`: a temporary file in the destination folder, fsync,
+then ``os.replace``).
 """
 from __future__ import annotations
 
 import json
 import os
 import struct
-import tempfile
 import zlib
 from collections import OrderedDict
 from pathlib import Path
 from typing import Iterable, Tuple, Union
+
+from baseline.fileio import write_bytes_atomic
 
 MAGIC = b"PGS\x00"
 FORMAT_VERSION = 1
@@ -82,23 +84,7 @@ def build_container(header: dict, sections: Iterable[Tuple[str, bytes]]) -> byte
 
 def write_container(path, header: dict, sections: Iterable[Tuple[str, bytes]]) -> int:
     """Write a container atomically (temp file + fsync + rename). Returns the byte count."""
-    data = build_container(header, sections)
-    path = Path(path)
-    folder = path.parent if str(path.parent) else Path(".")
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=folder)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
-        raise
-    return len(data)
+    return write_bytes_atomic(path, build_container(header, sections))
 
 
 def read_container(src: Union[str, os.PathLike, bytes, bytearray, memoryview]):

@@ -255,8 +255,6 @@ def section_group(name: str, header: dict) -> str:
 
 def file_info(path: str | Path) -> dict:
     """Per-section and per-group allocation read from the file itself."""
-    from baseline.codec.container import container_summary
-
     raw = Path(path).read_bytes()
     header, sections = read_container(raw)
     rows = [{"section": n, "bytes": len(b), "group": section_group(n, header)}

@@ -15,7 +15,7 @@ from __future__ import annotations
 import json
 import struct
 from collections import OrderedDict
-from typing import Dict, Iterable, Mapping, Optional
+from typing import Dict, Iterable, Mapping
 
 import numpy as np
 import torch

@@ -14,13 +14,13 @@ Conventions used throughout the data layer:
 """
 from __future__ import annotations
 
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 import OpenImageIO as oiio
 import scipy.sparse
+
+from baseline.fileio import atomic_path
 
 from .errors import SceneError
 
@@ -156,31 +156,22 @@ def to_uint8(img: np.ndarray) -> np.ndarray:
 
 
 def write_png_atomic(path: str | Path, img_u8: np.ndarray) -> None:
-    """Write a uint8 ``[H, W, C]`` PNG: to a temporary file beside ``path``, then rename.
+    """Write a uint8 ``[H, W, C]`` PNG atomically (:func:`baseline.fileio.atomic_path`).
 
-    A reader never sees a half-written file, and an interrupted write leaves only a temporary
-    file (removed on error).
+    A reader never sees a half-written file; a failed write leaves ``path`` as it was and no
+    temporary file. Not fsynced: these are renders and a rebuildable image cache.
     """
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix="." + path.stem + ".", suffix=".tmp.png", dir=path.parent)
-    os.close(fd)
-    try:
-        h, w, c = img_u8.shape
-        out = oiio.ImageOutput.create(tmp)
+    h, w, c = img_u8.shape
+    with atomic_path(path, fsync=False) as tmp:      # cache and renders: rename suffices
+        out = oiio.ImageOutput.create(str(tmp))
         spec = oiio.ImageSpec(w, h, c, "uint8")
         spec.attribute("oiio:UnassociatedAlpha", 1)          # write the values as given
-        if out is None or not out.open(tmp, spec):
-            raise OSError(f"cannot write {tmp}: {oiio.geterror()}")
+        if out is None or not out.open(str(tmp), spec):
+            raise OSError(f"cannot write {path}: {oiio.geterror()}")
         ok = out.write_image(np.ascontiguousarray(img_u8))
         out.close()
         if not ok:
-            raise OSError(f"cannot write {tmp}: {oiio.geterror()}")
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+            raise OSError(f"cannot write {path}: {oiio.geterror()}")
 
 
 def read_png_u8(path: str | Path) -> np.ndarray:

@@ -24,6 +24,8 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
+from baseline.fileio import write_text_atomic
+
 from .images import to_uint8, write_png_atomic
 
 SKY_HORIZON = np.array([0.78, 0.84, 0.92])
@@ -329,5 +331,5 @@ def make_scene(out_dir: str | os.PathLike, n_views: int = 40, width: int = 160, 
             "width": width, "height": height, "texture_detail": texture_detail,
             "n_points": len(pts), "camera_model": camera_model,
             "distortion": list(distortion), "shared_camera": shared_camera, "fov_deg": fov_deg}
-    (out / "synthetic.json").write_text(json.dumps(meta, indent=1))
+    write_text_atomic(out / "synthetic.json", json.dumps(meta, indent=1))
     return out

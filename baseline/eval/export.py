@@ -9,11 +9,12 @@ rot_0..3 as a (w, x, y, z) quaternion.
 """
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import numpy as np
 import torch
+
+from baseline.fileio import atomic_path
 
 SH_C0 = 0.28209479177387814
 N_REST = 45
@@ -42,12 +43,9 @@ def write_ply(path: str | Path, means, quats, scales, opacities, colors) -> int:
     data[:, 13 + N_REST:17 + N_REST] = q
     header = "ply\nformat binary_little_endian 1.0\n" + f"element vertex {G}\n" + "".join(
         f"property float {p}\n" for p in props) + "end_header\n"
-    path = Path(path)
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    with open(tmp, "wb") as f:
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
         f.write(header.encode("ascii"))
         f.write(data.astype("<f4").tobytes())
-    os.replace(tmp, path)
     return G
 
 

@@ -13,6 +13,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from baseline.eval.report import GROUP_ORDER, MB, method_names, rate_points, runs_of
+from baseline.fileio import atomic_path
 
 GROUP_COLORS = {"feature": "#d62728", "anchor": "#1f77b4", "scaling": "#2ca02c",
                 "offsets": "#ff7f0e", "masks": "#9467bd", "hash": "#8c564b", "mlps": "#7f7f7f",
@@ -37,9 +38,8 @@ def _style(results: dict) -> dict:
 
 
 def _save(fig, path: Path) -> Path:
-    tmp = path.with_name(f".{path.name}.tmp")
-    fig.savefig(tmp, format="png")
-    tmp.replace(path)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png")
     return path
 
 

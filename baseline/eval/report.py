@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Optional
 
 from baseline.eval.bdrate import BDError, bd_psnr, bd_rate
+from baseline.fileio import write_text_atomic
 
 MB = 2 ** 20
 GROUP_ORDER = ["feature", "anchor", "scaling", "offsets", "masks", "hash", "mlps", "header+framing"]
@@ -373,8 +374,6 @@ def write_report(results: dict, out_dir: str | Path, plots: bool = True) -> dict
         results["plots"] = {k: str(v) for k, v in write_plots(results, out_dir).items()}
         paths.update({k: Path(v) for k, v in results["plots"].items()})
     md = out_dir / "report.md"
-    tmp = md.with_suffix(".md.tmp")
-    tmp.write_text(format_report(results, markdown=True))
-    tmp.replace(md)
+    write_text_atomic(md, format_report(results, markdown=True))
     paths["report"] = md
     return paths

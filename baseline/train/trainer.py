@@ -22,6 +22,7 @@ from tqdm import tqdm
 
 from baseline import registry
 from baseline.config import Config, to_toml
+from baseline.fileio import atomic_path, write_text_atomic
 from baseline.pipeline import render_view
 from baseline.scaffold.build import build_entropy, build_model, entropy_param_groups
 from baseline.train.losses import lr_exp, reconstruction_loss
@@ -195,7 +196,7 @@ class Trainer:
         total = cfg.train.iterations if until is None else min(until, cfg.train.iterations)
         ck = cfg.train.at(cfg.train.checkpoint_every) if checkpoint_every is None else checkpoint_every
         self.out.mkdir(parents=True, exist_ok=True)
-        (self.out / "config.toml").write_text(to_toml(cfg))
+        write_text_atomic(self.out / "config.toml", to_toml(cfg))
         with tqdm(total=total, initial=self.iteration, desc="train", disable=not self.progress,
                   dynamic_ncols=True) as bar, self._open_log() as log:
             last = {}
@@ -241,7 +242,7 @@ class Trainer:
                         keep.append(line)
                 except (ValueError, KeyError, TypeError):
                     break                   # a torn last line (killed mid-write): stop there
-            path.write_text("".join(x + "\n" for x in keep))
+            write_text_atomic(path, "".join(x + "\n" for x in keep))
         return path.open("a")
 
     # ------------------------------------------------------------------------- checkpoints
@@ -264,10 +265,8 @@ class Trainer:
 
     def save_checkpoint(self, path: Optional[Path] = None) -> Path:
         path = Path(path) if path else self.out / CHECKPOINT_NAME
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_suffix(".tmp")
-        torch.save(self.state_dict(), tmp)
-        os.replace(tmp, path)
+        with atomic_path(path) as tmp:
+            torch.save(self.state_dict(), tmp)
         return path
 
     def load_checkpoint(self, path: str | Path) -> None:
