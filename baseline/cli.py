@@ -222,7 +222,7 @@ def cmd_compare(args) -> int:
         run_compare(args.scene, args.out, vs=args.vs, lambdas=args.lambdas,
                     common_patches=args.patch, sets=sets, lpips_weights=args.lpips_weights,
                     progress=not args.no_progress, plots=not args.no_plots, only=args.only,
-                    remeasure=args.remeasure)
+                    remeasure=args.remeasure, report_only=args.report_only)
     except KeyboardInterrupt:
         print(f"\ninterrupted: finished stages are kept in {args.out}; run the same command "
               f"again to resume", file=sys.stderr)
@@ -346,6 +346,9 @@ def main(argv=None) -> int:
                    help="bring only this method's runs to the end and report them (repeat; "
                    "'baseline' or a --vs value): split a comparison across processes sharing "
                    "--out, then rerun without it for the full report")
+    p.add_argument("--report-only", action="store_true",
+                   help="train and measure nothing: report the finished runs (archived records "
+                        "included) and list the missing ones")
     p.add_argument("--remeasure", action="store_true",
                    help="redo encode and decode+eval of trained runs (retake times and FPS)")
     p.add_argument("--archive", metavar="DIR", default=None,

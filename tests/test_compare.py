@@ -230,13 +230,23 @@ def test_archived_records_are_reported_without_retraining(scene, tmp_path):
     assert (arch / "report.md").exists() and (arch / "results.json").exists()
     specs = plan_runs(arch, parse_methods(["entropy-factorized"]), None, ["demo"], SETS)
     assert is_finished(specs[0]) and not is_finished(specs[1])
+    # --report-only: the archived run is reported, the missing one listed and not started
+    with pytest.raises(ValueError, match="report-only"):
+        run_compare(scene, arch, vs=["entropy-factorized"], report_only=True, remeasure=True, **kw)
+    part = run_compare(scene, arch, vs=["entropy-factorized"], report_only=True, **kw)
+    assert [r["method"] for r in part["runs"]] == [BASELINE] and part["runs"][0]["stages_run"] == []
+    assert part["missing"] == [specs[1].label] and not part["complete"]
+    assert not specs[1].dir.exists()
+    assert f"1 run(s) not run yet ({specs[1].label})" in (arch / "report.md").read_text()
+    assert format_report(part).startswith("Incomplete comparison: 1 run(s) not run yet")
     full = run_compare(scene, arch, vs=["entropy-factorized"], **kw)
     rows = {r["method"]: r for r in full["runs"]}
     assert rows[BASELINE]["stages_run"] == [] and rows[BASELINE]["records_only"]
     assert (rows[BASELINE]["bytes"], rows[BASELINE]["psnr"]) == (base["bytes"], base["psnr"])
     assert rows["entropy-factorized"]["stages_run"] == ["train", "encode", "decode+eval"]
     assert not rows["entropy-factorized"]["records_only"]
-    assert "archived records" in format_report(full)
+    assert "archived records" in format_report(full) and full["complete"] and full["missing"] == []
+    assert "Incomplete" not in format_report(full)
     again = run_compare(scene, arch, vs=["entropy-factorized"], remeasure=True, **kw)
     rows2 = {r["method"]: r for r in again["runs"]}
     assert rows2[BASELINE]["stages_run"] == [] and rows2[BASELINE]["decode_s"] == base["decode_s"]

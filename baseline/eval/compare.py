@@ -350,7 +350,8 @@ def run_compare(scene: str | Path, out: str | Path, vs: list[str] = (),
                 lambdas: Optional[list[float]] = None, common_patches: list[str] = (),
                 sets: list[str] = (), lpips_weights: Optional[str] = None,
                 progress: bool = True, plots: bool = True, echo: bool = True,
-                only: Optional[list[str]] = None, remeasure: bool = False) -> dict:
+                only: Optional[list[str]] = None, remeasure: bool = False,
+                report_only: bool = False) -> dict:
     """Run (or resume) a comparison; write ``out/results.json``, ``out/report.md`` and plots.
 
     ``only``: bring only the runs of these methods (names as in the report: ``baseline``, a
@@ -359,11 +360,16 @@ def run_compare(scene: str | Path, out: str | Path, vs: list[str] = (),
     core: ``taskset -c 0 pgs compare ... --only baseline`` beside ``taskset -c 1 ... --only
     predict-gs``); a final invocation without it reuses every finished run for the full report.
     ``remeasure``: see :func:`run_one`.
+    ``report_only``: train and measure nothing; report the finished runs (archived records
+    included) and list the others as missing (``results["missing"]``). For a long comparison
+    that spans sessions or machines: its report so far, without starting the runs still to do.
     """
     from baseline.eval.metrics import load_lpips
     from baseline.eval.report import format_report, write_report
     from baseline.run import versions, write_json_atomic
 
+    if report_only and remeasure:
+        raise ValueError("--report-only measures nothing: it cannot be combined with --remeasure")
     scene_path = str(Path(scene).resolve())
     if not Path(scene_path).exists():
         raise FileNotFoundError(f"scene {scene} does not exist")
@@ -396,12 +402,18 @@ def run_compare(scene: str | Path, out: str | Path, vs: list[str] = (),
         "only": list(only) if only else None,
         "versions": versions(),
         "complete": False,
+        "missing": [],
         "runs": [],
     }
     n_done = 0 if remeasure else sum(is_finished(s, lp_id) for s in specs)
     if echo:
         print(f"compare: {len(methods)} method(s) x {len(specs) // len(methods)} rate point(s) = "
               f"{len(specs)} run(s) on {scene_path}; {n_done} already finished in {out / 'runs'}")
+    if report_only:
+        results["missing"] = [s.label for s in specs if not is_finished(s, lp_id)]
+        specs = [s for s in specs if is_finished(s, lp_id)]
+        if echo and results["missing"]:
+            print("--report-only: not run yet (left alone): " + ", ".join(results["missing"]))
     if n_done < len(specs):
         _warm_up_rasterizer(specs)
     t0 = time.perf_counter()
@@ -427,7 +439,7 @@ def run_compare(scene: str | Path, out: str | Path, vs: list[str] = (),
                        f"FPS {row['fps']:.1f}  [{what}]")
         bar.update(1)
     bar.close()
-    results["complete"] = True
+    results["complete"] = not results["missing"]
     results["wall_s_this_invocation"] = time.perf_counter() - t0
     paths = write_report(results, out, plots=plots)
     results["report"] = {k: str(v) for k, v in paths.items()}

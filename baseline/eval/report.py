@@ -339,6 +339,14 @@ def all_tables(results: dict) -> list[Table]:
             + section_tables(results) + [speed_table(results), bd_table(results)])
 
 
+def _missing_text(results: dict) -> str:
+    missing = results.get("missing") or []
+    if not missing:
+        return "some runs have not finished."
+    return (f"{len(missing)} run(s) not run yet ({', '.join(missing)}); the same `pgs compare` "
+            f"without --report-only trains them.")
+
+
 def format_report(results: dict, markdown: bool = False) -> str:
     tables = all_tables(results)
     prot = protocol_lines(results)
@@ -348,7 +356,7 @@ def format_report(results: dict, markdown: bool = False) -> str:
                  f"every number is measured on the decoded `.pgs` file or read from the runs' "
                  f"records ({len(results['runs'])} runs)."]
         if not results.get("complete", True):
-            parts.append("\n**Incomplete comparison**: some runs have not finished.")
+            parts.append("\n**Incomplete comparison**: " + _missing_text(results))
         for t in tables:
             parts += ["", t.markdown()]
         parts += ["", "### Protocol", ""] + [f"- **{k}**: {v}" for k, v in prot]
@@ -357,6 +365,8 @@ def format_report(results: dict, markdown: bool = False) -> str:
             parts += ["", "### Plots", ""] + [f"![{k}]({Path(v).name})" for k, v in plots.items()]
         return "\n".join(parts) + "\n"
     parts = [t.text() for t in tables]
+    if not results.get("complete", True):
+        parts.insert(0, "Incomplete comparison: " + _missing_text(results))
     w = max(len(k) for k, _ in prot)
     parts.append("Protocol\n========\n" + "\n".join(f"{k.ljust(w)}  {v}" for k, v in prot))
     return "\n\n".join(parts)
