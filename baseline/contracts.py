@@ -5,6 +5,12 @@ per-anchor attributes it wants entropy coded (:class:`CodedAttribute`). An *entr
 builds its output head from that list, so swapping the provider swaps the head with no special
 cases. A *refiner* (optional) turns per-anchor extras and the view into additive corrections of
 the decoded Gaussians.
+
+Providers and refiners are built as ``cls(model, cfg)``. One whose construction depends on more
+than the config (e.g. a hash grid sized from the anchor count at the start of training) defines
+``codec_state() -> dict`` (JSON-able); the encoder keeps it in the file header and the decoder
+builds the module as ``cls(model, cfg, codec_state=state)``, so a decoded model never re-derives
+it from the decoded (grown and pruned) anchors.
 """
 from __future__ import annotations
 

@@ -16,33 +16,44 @@ on the anchor position only, so rendering skips the grid query and the fusion ML
 """
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import Optional
 
 import torch
 import torch.nn as nn
 
 from baseline.contracts import CodedAttribute
-from baseline.hac.hashgrid import BinaryHashGrid, auto_grid_layout
+from baseline.hac.hashgrid import BinaryHashGrid
+from baseline.scaffold.build import grid_options
 from baseline.scaffold.model import grow_zeros
 
 
-def grid_from_config(gcfg, n_anchors: int, auto: bool) -> BinaryHashGrid:
-    if auto:
-        return BinaryHashGrid(**auto_grid_layout(n_anchors))
-    return BinaryHashGrid(resolutions_3d=gcfg.resolutions_3d, log2_table_3d=gcfg.log2_table_3d,
-                          resolutions_2d=gcfg.resolutions_2d, log2_table_2d=gcfg.log2_table_2d,
-                          n_features=gcfg.n_features)
+def _layout_from_json(layout: dict) -> dict:
+    return {k: tuple(int(x) for x in v) if isinstance(v, (list, tuple)) else int(v)
+            for k, v in layout.items()}
 
 
 class SpatialFeaturePool(nn.Module):
-    def __init__(self, model, cfg):
+    def __init__(self, model, cfg, codec_state: Optional[dict] = None):
+        """``codec_state``: what :meth:`codec_state` returned when the file was written (the
+        decoder passes it back). It fixes the grid layout: with ``predict.grid_auto`` the layout
+        was sized from the anchor count *at the start of training*, which the decoded model
+        (after growing and pruning) no longer has."""
         super().__init__()
         p = cfg.ext["predict"]
         self.pcfg = p
         self.feature_dim = cfg.model.feat_dim
         self.n_offsets = cfg.model.n_offsets
         self._model = [model]
-        self.grid = grid_from_config(cfg.entropy.grid, model.n_anchors, p.grid_auto)
+        if codec_state is not None:
+            try:
+                self.grid_layout = _layout_from_json(codec_state["grid"])
+            except (KeyError, TypeError, ValueError, AttributeError) as e:
+                raise ValueError(f"bad Spatial Feature Pool state {codec_state!r}: {e}") from None
+        else:       # the SFP is its own grid: the entropy grid's `auto` does not size it
+            self.grid_layout = grid_options(replace(cfg.entropy.grid, auto=p.grid_auto),
+                                            model.n_anchors)
+        self.grid = BinaryHashGrid(**self.grid_layout)
         xyz = model.xyz.detach()
         lo, hi = xyz.min(0).values, xyz.max(0).values
         margin = 0.1 * (hi - lo).clamp_min(1e-6)
@@ -55,6 +66,12 @@ class SpatialFeaturePool(nn.Module):
         self._cache: Optional[torch.Tensor] = None
 
     # ------------------------------------------------------------------- provider contract
+    def codec_state(self) -> dict:
+        """JSON-able construction state the decoder needs besides the config (the file header
+        keeps it): the resolved grid layout."""
+        return {"grid": {k: list(v) if isinstance(v, tuple) else v
+                         for k, v in self.grid_layout.items()}}
+
     def coded_attributes(self):
         attrs = []
         if self.use_residual:

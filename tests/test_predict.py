@@ -106,3 +106,37 @@ def test_baseline_config_unchanged_by_plugin():
     cfg = build_config()
     assert cfg.model.feature_provider == "explicit" and cfg.model.refiner == "none"
     assert "predict_stages" not in cfg.train.hooks
+
+
+def test_auto_sized_sfp_decodes_after_the_anchor_count_changed(tmp_path):
+    """With predict.grid_auto the SFP grid is sized from the anchors at the start of training;
+    the file keeps that layout (codec_state), so a model whose anchor count changed since (growing)
+    decodes to the same grid and the same predicted features."""
+    from baseline.codec.model_codec import decode_model, encode_model, file_info
+    from baseline.scaffold.build import build_entropy
+
+    torch.set_num_threads(1)
+    cfg = _pgs_cfg("model.voxel_size=0.05", "predict.grid_auto=true")
+    model = _pgs_model(cfg, n=200)
+    layout0 = dict(model.provider.grid_layout)
+    g = torch.Generator().manual_seed(1)
+    n_new = 3000
+    model.append_anchors(torch.rand(n_new, 3, generator=g) * 2 - 1, torch.full((n_new, 6), -3.0),
+                         parent=torch.zeros(n_new, dtype=torch.long), inverse=torch.arange(n_new))
+    from predict_plugin.sfp import SpatialFeaturePool
+    rebuilt = SpatialFeaturePool(model, cfg)            # what sizing from the new count gives
+    assert rebuilt.grid_layout != layout0, "the test must change the auto layout"
+    entropy = build_entropy(cfg, model)
+    st = encode_model(cfg, model, entropy, tmp_path / "m.pgs")
+    dec = decode_model(tmp_path / "m.pgs")
+    assert dec.model.provider.grid_layout == layout0
+    assert file_info(tmp_path / "m.pgs")["n_anchors"] == model.n_anchors == dec.model.n_anchors
+    with torch.no_grad():
+        assert torch.equal(dec.model.provider.predict(st["xyz_q"]), model.provider.predict(st["xyz_q"]))
+    # a damaged state in the header is a clear bitstream error, not a crash
+    from baseline.codec.container import BitstreamError, read_container, write_container
+    header, sections = read_container(tmp_path / "m.pgs")
+    header["module_state"]["provider"] = {"grid": "junk"}
+    write_container(tmp_path / "bad.pgs", header, list(sections.items()))
+    with pytest.raises(BitstreamError, match="module_state"):
+        decode_model(tmp_path / "bad.pgs")

@@ -59,6 +59,23 @@ def _module_sections(prefix: str, module: nn.Module, precision: str) -> list[tup
     return out
 
 
+def _module_states(model) -> dict:
+    """Construction state that plugged-in modules keep in the header (``codec_state()``, JSON):
+    what the decoder needs besides the config, e.g. a grid layout sized during training."""
+    return {name: mod.codec_state() for name, mod in (("provider", model.provider),
+                                                       ("refiner", model.refiner))
+            if mod is not None and hasattr(mod, "codec_state")}
+
+
+def _factory(cls, cfg, state):
+    """``cls(model, cfg)``, or ``cls(model, cfg, codec_state=state)`` when the file has one."""
+    if cls is None:
+        return None
+    if state is None:
+        return lambda m: cls(m, cfg)
+    return lambda m: cls(m, cfg, codec_state=state)
+
+
 def _load_module_sections(prefix: str, module: nn.Module, sections: dict) -> None:
     grids = _grid_modules(module)
     key = f"{prefix}.weights"
@@ -126,6 +143,7 @@ def encode_model(cfg, model, entropy, path: str | Path, extra_header: Optional[d
         "position_bounds": [lo.tolist(), hi.tolist()],
         "attrs": [dataclasses.asdict(a) for a in attrs],
         "provider_attrs": provider_attrs,
+        "module_state": _module_states(model),
         "entropy": entropy.config(),
         "weight_dtype": precision,
     }
@@ -195,6 +213,7 @@ def decode_model(path: str | Path) -> DecodedModel:
         lo, hi = (np.asarray(b, dtype=np.float32) for b in header["position_bounds"])
         cfg_dict = dict(header["config"])
         ent_cfg = header["entropy"]
+        states = dict(header.get("module_state", {}))
     except (KeyError, TypeError, ValueError) as e:
         raise BitstreamError(f"{path}: header is missing or has a bad field: {e}") from None
     cfg = default_config()
@@ -212,10 +231,13 @@ def decode_model(path: str | Path) -> DecodedModel:
     gmask = torch.from_numpy(np.asarray(gm, dtype=np.float32).reshape(N, K))
     prov_cls = registry.get("feature_provider", cfg.model.feature_provider)
     ref_cls = None if cfg.model.refiner in ("", "none") else registry.get("refiner", cfg.model.refiner)
-    model = AnchorModel(xyz, torch.zeros(N, 6), cfg.model,
-                        provider_factory=lambda m: prov_cls(m, cfg),
-                        refiner_factory=(lambda m: ref_cls(m, cfg)) if ref_cls else None,
-                        mask_threshold=cfg.entropy.mask_threshold)
+    try:
+        model = AnchorModel(xyz, torch.zeros(N, 6), cfg.model,
+                            provider_factory=_factory(prov_cls, cfg, states.get("provider")),
+                            refiner_factory=_factory(ref_cls, cfg, states.get("refiner")),
+                            mask_threshold=cfg.entropy.mask_threshold)
+    except (ValueError, TypeError) as e:
+        raise BitstreamError(f"{path}: header 'module_state' does not fit the modules: {e}") from None
     entropy = build_entropy_model(ent_cfg)
     em = {k[3:]: v for k, v in sections.items() if k.startswith("em.")}
     entropy.load_serialized(em)

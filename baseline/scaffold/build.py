@@ -33,7 +33,7 @@ def grid_options(gcfg, n_anchors: int) -> dict:
     from baseline.hac.hashgrid import auto_grid_layout
 
     if gcfg.auto:
-        return auto_grid_layout(n_anchors)
+        return dict(auto_grid_layout(n_anchors), n_features=gcfg.n_features)
     return dict(resolutions_3d=tuple(gcfg.resolutions_3d), log2_table_3d=gcfg.log2_table_3d,
                 resolutions_2d=tuple(gcfg.resolutions_2d), log2_table_2d=gcfg.log2_table_2d,
                 n_features=gcfg.n_features)
