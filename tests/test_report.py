@@ -84,6 +84,19 @@ def test_partner_and_points():
     assert [len(p) for p in rate_points(res)] == [2]
 
 
+
+def test_points_group_by_lambda_when_a_run_is_missing():
+    """A comparison under way (one method lacks a rate point) still pairs runs by lambda, never
+    by rank: the section tables must not set lambda 0.001 beside lambda 0.002."""
+    res = stored_results()
+    res["runs"] = [r for r in res["runs"] if not (r["method"] == "predict-gs" and r["lmbda"] == 0.002)]
+    pts = rate_points(res)
+    assert all(len({r["lmbda"] for r in p}) == 1 for p in pts)
+    assert sorted(len(p) for p in pts) == [2, 3, 3]
+    text = format_report(res)
+    assert "(lambda " not in text.split("Sections (bytes)")[1].split("\n")[0]
+
+
 def test_report_text_and_markdown(tmp_path):
     res = stored_results()
     txt = format_report(res)

@@ -57,13 +57,17 @@ def baseline_partner(results: dict, row: dict) -> Optional[dict]:
 
 
 def rate_points(results: dict) -> list[list[dict]]:
-    """Runs grouped by rate point: by lambda when all methods share the lambdas, else by rank."""
+    """Runs grouped by rate point.
+
+    By lambda whenever the methods share a lambda (a method missing a run, e.g. a comparison
+    still under way, is simply absent from that point); by rank only when their lambdas are
+    disjoint (methods with rate points of their own)."""
     names = method_names(results)
     per = [runs_of(results, m) for m in names]
-    lam_sets = {tuple(r["lmbda"] for r in rs) for rs in per if rs}
-    if len(lam_sets) == 1:
-        lams = next(iter(lam_sets))
-        return [[r for rs in per for r in rs if r["lmbda"] == lm] for lm in lams]
+    lam_lists = [[r["lmbda"] for r in rs] for rs in per if rs]
+    union = list(dict.fromkeys(lm for ls in lam_lists for lm in ls))
+    if len(lam_lists) <= 1 or len(union) < sum(len(ls) for ls in lam_lists):
+        return [[r for rs in per for r in rs if r["lmbda"] == lm] for lm in union]
     n = max((len(rs) for rs in per), default=0)
     return [[rs[i] for rs in per if i < len(rs)] for i in range(n)]
 
