@@ -68,9 +68,8 @@ class SpatialFeaturePool(nn.Module):
     # ------------------------------------------------------------------- provider contract
     def codec_state(self) -> dict:
         """JSON-able construction state the decoder needs besides the config (the file header
-        keeps it): the resolved grid layout."""
-        return {"grid": {k: list(v) if isinstance(v, tuple) else v
-                         for k, v in self.grid_layout.items()}}
+        keeps it): the resolved grid layout (tuples become JSON lists)."""
+        return {"grid": dict(self.grid_layout)}
 
     def coded_attributes(self):
         attrs = []

@@ -405,13 +405,14 @@ def run_compare(scene: str | Path, out: str | Path, vs: list[str] = (),
         "missing": [],
         "runs": [],
     }
-    n_done = 0 if remeasure else sum(is_finished(s, lp_id) for s in specs)
+    finished = [is_finished(s, lp_id) for s in specs]          # reads each run's records once
+    n_done = 0 if remeasure else sum(finished)
     if echo:
         print(f"compare: {len(methods)} method(s) x {len(specs) // len(methods)} rate point(s) = "
               f"{len(specs)} run(s) on {scene_path}; {n_done} already finished in {out / 'runs'}")
     if report_only:
-        results["missing"] = [s.label for s in specs if not is_finished(s, lp_id)]
-        specs = [s for s in specs if is_finished(s, lp_id)]
+        results["missing"] = [s.label for s, done in zip(specs, finished) if not done]
+        specs = [s for s, done in zip(specs, finished) if done]
         if echo and results["missing"]:
             print("--report-only: not run yet (left alone): " + ", ".join(results["missing"]))
     if n_done < len(specs):
