@@ -119,6 +119,18 @@ def test_image_with_wrong_aspect(scene, tmp_path):
     assert "view_001.png" in str(e.value) and "48x36" in str(e.value)
 
 
+def test_downscaled_sizes_fit_their_calibration():
+    from baseline.data.scene import fits_calibration
+
+    assert fits_calibration(245, 136, 979, 546)      # truck at 1/4, 136.5 rounded down
+    assert fits_calibration(245, 137, 979, 546)      # ... rounded up (ImageMagick)
+    assert fits_calibration(489, 273, 979, 546) and fits_calibration(979, 546, 979, 546)
+    assert fits_calibration(504, 378, 4032, 3024)    # fern images_8
+    assert not fits_calibration(136, 245, 979, 546)  # rotated
+    assert not fits_calibration(245, 130, 979, 546)  # cropped by 6 px
+    assert not fits_calibration(36, 48, 48, 36)
+
+
 def test_missing_image_folder(scene, tmp_path):
     with pytest.raises(SceneError, match="images_4"):
         load(scene, tmp_path, images="images_4")

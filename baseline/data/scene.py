@@ -189,13 +189,22 @@ def _target_size(w: int, h: int, resolution: int, extra: float | None) -> tuple[
     return max(1, int(round(w / f))), max(1, int(round(h / f)))
 
 
+def fits_calibration(w: int, h: int, W: int, H: int, slack: float = 1.0) -> bool:
+    """Whether a ``w`` x ``h`` image can be the ``W`` x ``H`` calibration image resized by one
+    factor s, each side rounded to whole pixels (off by at most ``slack`` px: resizers round,
+    floor or ceil). True when some s has |w - s W| <= slack and |h - s H| <= slack, i.e. the two
+    intervals of s overlap. (Predicting one side from the other's ratio, as before, wrongly
+    refused wide images: truck's 979x546 at a quarter is 245x136, and 136/546 * 979 = 243.9.)"""
+    lo = max((w - slack) / W, (h - slack) / H)
+    hi = min((w + slack) / W, (h + slack) / H)
+    return lo <= hi + 1e-12
+
+
 def _check_aspect(rec: ViewRecord, size: tuple[int, int]) -> None:
     """The file must be the calibration image at some scale (within rounding of a resize)."""
     w, h = size
     W, H = rec.source.width, rec.source.height
-    sx, sy = w / W, h / H
-    # a downscaled folder rounds each side to whole pixels: allow one pixel of slack per side
-    if abs(sx * H - h) > 1.0 + 1e-9 or abs(sy * W - w) > 1.0 + 1e-9:
+    if not fits_calibration(w, h, W, H):
         cid = f" (camera id {rec.source.camera_id})" if rec.source.camera_id is not None else ""
         raise SceneError(f"{rec.path}: image is {w}x{h} but its camera{cid} is calibrated for "
                          f"{W}x{H}, a different aspect ratio (rotated or cropped image?); "
