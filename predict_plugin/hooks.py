@@ -24,6 +24,14 @@ class PredictStages:
     def residual_on(self, it: int) -> bool:
         return bool(self.p.residual) and it > self.residual_from
 
+    def restore(self, it: int) -> None:
+        """After a checkpoint of iteration ``it`` is loaded: the refiner is on exactly when it
+        was on in that iteration (a loaded run is evaluated, rendered, exported or encoded
+        without a step; before this hook a loaded stage-2 run rendered without its MGRD)."""
+        ref = self.t.model.refiner
+        if ref is not None:
+            ref.active = self.residual_on(it)
+
     def before_step(self, it: int) -> None:
         ref = self.t.model.refiner
         if ref is not None:

@@ -2,7 +2,9 @@
 
 Hooks (DESIGN.md, "Training hooks") are objects built as ``cls(trainer)`` from registry kind
 ``hooks`` and may define ``before_step(it)``, ``after_backward(it, ctx)``, ``after_step(it)``,
-and ``state_dict()`` / ``load_state_dict(s)`` (saved in checkpoints).
+``state_dict()`` / ``load_state_dict(s)`` (saved in checkpoints) and ``restore(it)``: called
+after a checkpoint of iteration ``it`` is loaded, to re-derive module state the hook sets in
+``before_step`` (a loaded run is rendered or encoded without taking a step).
 Hooks steer the trainer through ``trainer.phase`` (quantization phase), ``trainer.render_scale``
 (progressive resolution) and ``trainer.extra_losses`` (name -> callable(ctx) -> scalar).
 """
@@ -297,6 +299,9 @@ class Trainer:
         self.render_scale = s["render_scale"]
         self.voxel_size = s["voxel_size"]
         self._view_order = list(s["view_order"])
+        for h in self.hooks:
+            if hasattr(h, "restore"):
+                h.restore(self.iteration)
         torch.set_rng_state(s["rng"]["torch"])
         self.generator.set_state(s["rng"]["gen"])
         np.random.set_state(s["rng"]["numpy"])
