@@ -8,6 +8,9 @@ import time
 from pathlib import Path
 
 
+DEVICE_HELP = "where to render: auto | cpu | cuda | cuda:N (default: the run's train.device)"
+
+
 def _config_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--patch", action="append", default=[], metavar="NAME",
                    help="config patch (patches/NAME.toml or a path); repeat to apply in order")
@@ -17,6 +20,8 @@ def _config_args(p: argparse.ArgumentParser) -> None:
                    help="downscale factor (1, 2, 4, 8); default: original size capped at 1600 px")
     p.add_argument("--images", default=None, help="image folder (e.g. images_8)")
     p.add_argument("--iterations", type=int, default=None, help="shortcut for --set train.iterations=N")
+    p.add_argument("--device", default=None,
+                   help="auto | cpu | cuda | cuda:N: shortcut for --set train.device=...")
 
 
 def _build_cfg(args):
@@ -29,6 +34,8 @@ def _build_cfg(args):
         sets.append(f'data.images="{args.images}"')
     if getattr(args, "iterations", None):
         sets.append(f"train.iterations={args.iterations}")
+    if getattr(args, "device", None):
+        sets.append(f'train.device="{args.device}"')
     return build_config(args.patch, sets)
 
 
@@ -72,7 +79,7 @@ def cmd_eval(args) -> int:
     from baseline.eval.metrics import load_lpips
     from baseline.run import Renderable, write_json_atomic
 
-    r = Renderable(args.target, args.scene)
+    r = Renderable(args.target, args.scene, device=args.device)
     lpips_fn, reason = load_lpips(args.lpips_weights)
     if lpips_fn is None:
         print(reason)
@@ -94,7 +101,7 @@ def cmd_eval(args) -> int:
 def cmd_render(args) -> int:
     from baseline.run import Renderable
 
-    r = Renderable(args.target, args.scene)
+    r = Renderable(args.target, args.scene, device=args.device)
     out = Path(args.output)
     res = r.evaluate(args.split, render_dir=out)
     print(f"rendered {res['n_views']} {args.split} views to {out} "
@@ -106,7 +113,7 @@ def cmd_encode(args) -> int:
     from baseline.codec.model_codec import encode_model, file_info, format_info, format_rate_check, rate_check
     from baseline.run import load_run, write_json_atomic
 
-    trainer, scene = load_run(args.run)
+    trainer, scene = load_run(args.run, device="cpu")       # the codec runs on the CPU
     if trainer.phase != "adaptive":
         print(f"note: {args.run} stopped before the entropy model was trained (phase "
               f"'{trainer.phase}'); the file is coded with an untrained context model")
@@ -144,7 +151,7 @@ def cmd_decode(args) -> int:
     res = {"file": str(args.file), "bytes": Path(args.file).stat().st_size, "decode_s": dec.decode_s,
            "anchors": dec.model.n_anchors}
     if args.render != "none":
-        r = Renderable(args.file, args.scene)
+        r = Renderable(args.file, args.scene, device=args.device)
         res[args.render] = r.evaluate(args.render, render_dir=out / "renders" / args.render)
         t = res[args.render]
         print(f"{args.render}: PSNR {t['psnr']:.3f} dB  SSIM {t['ssim']:.4f}  FPS {t['fps']:.1f}")
@@ -173,7 +180,7 @@ def cmd_export_ply(args) -> int:
     from baseline.eval.export import export_run_ply
     from baseline.run import coding_positions, load_run
 
-    trainer, scene = load_run(args.run)
+    trainer, scene = load_run(args.run, device="cpu")
     out = args.output or str(Path(args.run) / "point_cloud.ply")
     values = None
     xyz_q = coding_positions(trainer)
@@ -287,6 +294,7 @@ def main(argv=None) -> int:
     p.add_argument("--split", choices=["test", "train"], default="test")
     p.add_argument("--scene", default=None, help="scene path (default: the one recorded)")
     p.add_argument("--lpips-weights", default=None, help="LPIPS weights file (else unavailable)")
+    p.add_argument("--device", default=None, help=DEVICE_HELP)
     p.set_defaults(fn=cmd_eval)
 
     p = sub.add_parser("render", help="render the views of a run folder or a .pgs file to PNG")
@@ -294,6 +302,7 @@ def main(argv=None) -> int:
     p.add_argument("-o", "--output", required=True)
     p.add_argument("--split", choices=["test", "train"], default="test")
     p.add_argument("--scene", default=None)
+    p.add_argument("--device", default=None, help=DEVICE_HELP)
     p.set_defaults(fn=cmd_render)
 
     p = sub.add_parser("encode", help="compress a trained run into one .pgs file")
@@ -310,6 +319,7 @@ def main(argv=None) -> int:
     p.add_argument("-o", "--output", default=None)
     p.add_argument("--render", choices=["test", "train", "none"], default="none")
     p.add_argument("--scene", default=None)
+    p.add_argument("--device", default=None, help=DEVICE_HELP + " (decoding itself: CPU)")
     p.set_defaults(fn=cmd_decode)
 
     p = sub.add_parser("info", help="per-section bit allocation of a .pgs file")

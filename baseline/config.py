@@ -14,6 +14,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import re
 import tomllib
 import typing
 from dataclasses import dataclass, field
@@ -98,6 +99,7 @@ class TrainConfig:
     lambda_dssim: float = 0.2
     lambda_volume: float = 0.01
     threads: int = 0                     # 0 = all cores
+    device: str = "auto"                 # auto (cuda when torch sees a GPU) | cpu | cuda | cuda:N
     rasterizer: str = "auto"             # auto | cpu | gsplat | reference
     hooks: list[str] = field(default_factory=lambda: ["scaffold_densify", "hac_phases"])
     checkpoint_every: int = 5000         # paper-scale iterations; 0 = only at the end
@@ -297,6 +299,9 @@ def validate(cfg: Config) -> None:
         raise ConfigError("train.iterations must be positive")
     if cfg.data.background not in ("black", "white"):
         raise ConfigError(f"data.background must be 'black' or 'white', got '{cfg.data.background}'")
+    dev = cfg.train.device
+    if not (dev in ("auto", "cpu", "cuda") or re.fullmatch(r"cuda:\d+", dev)):
+        raise ConfigError(f"train.device must be auto, cpu, cuda or cuda:N, got '{dev}'")
     if cfg.codec.weight_dtype not in ("float32", "float16"):
         raise ConfigError(f"codec.weight_dtype must be float32 or float16, got '{cfg.codec.weight_dtype}'")
 
@@ -346,7 +351,15 @@ def from_toml(path: str | Path) -> Config:
     return cfg
 
 
+# Where a run executes, not what it computes: left out of the config hash, so the same settings
+# trained on the CPU or on a GPU are one run (each run records its device and rasterizer backend
+# in results.json, and reports print them in their protocol).
+EXECUTION_KEYS = (("train", "device"),)
+
+
 def config_hash(cfg: Config) -> str:
     """A short stable hash of the merged config (used to reuse finished runs)."""
     d = to_dict(cfg, drop_meta=True)
+    for sec, key in EXECUTION_KEYS:
+        d[sec].pop(key, None)
     return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:12]

@@ -17,6 +17,7 @@ from typing import Optional
 import torch
 
 from baseline.camera import Camera
+from baseline.device import uniform
 from baseline.render import prefilter_anchors, rasterize
 
 
@@ -35,7 +36,7 @@ def quantized_positions(xyz: torch.Tensor) -> torch.Tensor:
 
     lo, hi = anchor_bounds(xyz.detach().cpu().numpy())
     q = quantize_positions(xyz.detach().cpu().numpy(), lo, hi)
-    return torch.from_numpy(dequantize_positions(q, lo, hi))
+    return torch.from_numpy(dequantize_positions(q, lo, hi)).to(xyz.device)
 
 
 def visible_anchors(model, cam: Camera) -> torch.Tensor:
@@ -70,7 +71,7 @@ def render_view(model, cam: Camera, background: torch.Tensor, *, phase: str = "n
     attrs = {a.name: a for a in model.coded_attributes()}
     if phase == "noise":
         if training:
-            values = {k: v + (torch.rand(v.shape, generator=generator) - 0.5) * attrs[k].q0
+            values = {k: v + (uniform(v.shape, generator, v.device) - 0.5) * attrs[k].q0
                       for k, v in values.items()}
         else:
             values = {k: torch.round(v / attrs[k].q0) * attrs[k].q0 for k, v in values.items()}
@@ -80,7 +81,7 @@ def render_view(model, cam: Camera, background: torch.Tensor, *, phase: str = "n
         gmask = model.gaussian_mask(idx)
         if training:
             valid = (gmask.detach() > 0).any(dim=1)
-            choose = (torch.rand(len(idx), generator=generator) <= rate_sample) & valid
+            choose = (uniform(len(idx), generator, idx.device) <= rate_sample) & valid
             values, bits = entropy(xyz, values, gmask, training=True, rate_rows=choose)
             n_rate = int(choose.sum())
         else:

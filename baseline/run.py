@@ -71,6 +71,9 @@ def train_run(scene_path: str, out: str | Path, cfg: Config, resume: bool = Fals
     write_json_atomic(out / "scene.json", {"path": str(Path(scene_path).resolve()),
                                            "protocol": getattr(scene, "protocol", {})})
     trainer.train()
+    from baseline.device import device_name
+    from baseline.render import resolve_backend
+
     results = {
         "config_patches": cfg.patches,
         "scene": str(Path(scene_path).resolve()),
@@ -79,6 +82,8 @@ def train_run(scene_path: str, out: str | Path, cfg: Config, resume: bool = Fals
         "train_time_s": trainer.train_time,
         "s_per_it": trainer.train_time / max(trainer.iteration, 1),
         "threads": trainer.threads,
+        "device": device_name(trainer.device),
+        "backend": resolve_backend(cfg.train.rasterizer, trainer.model.xyz),
         "voxel_size": trainer.voxel_size,
         "anchors": trainer.model.n_anchors,
         "versions": versions(),
@@ -108,8 +113,12 @@ def evaluate_trainer(trainer: Trainer, scene, render_dir: Optional[Path] = None,
                     render_dir=render_dir, lpips_fn=lpips_fn)
 
 
-def load_run(run_dir: str | Path, progress: bool = False) -> tuple[Trainer, object]:
-    """Rebuild the trainer of a run folder from its config and checkpoint."""
+def load_run(run_dir: str | Path, progress: bool = False,
+             device: str | None = None) -> tuple[Trainer, object]:
+    """Rebuild the trainer of a run folder from its config and checkpoint.
+
+    ``device``: where to put the model (None: the config's ``train.device``); the encoder loads
+    runs on the CPU, where the codec runs."""
     run_dir = Path(run_dir)
     for name in ("config.toml", "scene.json", CHECKPOINT_NAME):
         if not (run_dir / name).exists():
@@ -117,7 +126,7 @@ def load_run(run_dir: str | Path, progress: bool = False) -> tuple[Trainer, obje
     cfg = from_toml(run_dir / "config.toml")
     scene_path = json.loads((run_dir / "scene.json").read_text())["path"]
     scene = load_scene_for(cfg, scene_path, progress=progress)
-    trainer = Trainer(cfg, scene, run_dir, progress=progress)
+    trainer = Trainer(cfg, scene, run_dir, progress=progress, device=device)
     trainer.load_checkpoint(run_dir / CHECKPOINT_NAME)
     return trainer, scene
 
@@ -125,7 +134,12 @@ def load_run(run_dir: str | Path, progress: bool = False) -> tuple[Trainer, obje
 class Renderable:
     """Anything `pgs eval` / `pgs render` can draw: a run folder or a decoded ``.pgs`` file."""
 
-    def __init__(self, target: str | Path, scene_override: Optional[str] = None):
+    def __init__(self, target: str | Path, scene_override: Optional[str] = None,
+                 device: str | None = None):
+        """``device``: where to render (None: the config's ``train.device``). A ``.pgs`` file is
+        decoded on the CPU, then moved."""
+        from baseline.device import resolve_device
+
         target = Path(target)
         self.target = target
         self.entropy = None
@@ -136,13 +150,14 @@ class Renderable:
             dec = decode_model(target)
             self.decoded = dec
             self.cfg, self.model, self.phase = dec.cfg, dec.model, "decoded"
+            self.model.to(resolve_device(device or self.cfg.train.device))
             scene_path = scene_override or dec.header.get("scene")
             if not scene_path:
                 raise ValueError(f"{target} does not record its scene; pass --scene PATH")
         else:
             if not (target / "config.toml").exists():
                 raise FileNotFoundError(f"{target} is neither a .pgs file nor a run folder")
-            trainer, scene = load_run(target)
+            trainer, scene = load_run(target, device=device)
             self.trainer = trainer
             self.cfg, self.model, self.phase = trainer.cfg, trainer.model, trainer.phase
             self.entropy = trainer.entropy

@@ -101,6 +101,13 @@ class SpatialFeaturePool(nn.Module):
     def clear_cache(self) -> None:
         self._cache = None
 
+    def _apply(self, fn, *args, **kwargs):
+        """``.to()`` / ``.cuda()`` / ``.cpu()`` move the f_c cache with the parameters."""
+        super()._apply(fn, *args, **kwargs)
+        if self._cache is not None:
+            self._cache = fn(self._cache)
+        return self
+
     def rate_bits(self) -> torch.Tensor:
         """The SFP's hash bits, added to the rate loss (paper eq. 8: L_entropy includes the SFP)."""
         return self.grid.hash_bits()

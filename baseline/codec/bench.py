@@ -173,7 +173,7 @@ def run_model_codec_bench(run_dir: str) -> Dict:
     from baseline.codec.model_codec import decode_model, encode_model
     from baseline.run import load_run
 
-    trainer, _ = load_run(run_dir)
+    trainer, _ = load_run(run_dir, device="cpu")       # the codec runs on the CPU
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "bench.pgs"
         st = encode_model(trainer.cfg, trainer.model, trainer.entropy, path)

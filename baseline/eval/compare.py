@@ -185,7 +185,7 @@ def _stage_encode(spec: RunSpec, scene_path: str, record: dict) -> None:
     from baseline.codec.model_codec import encode_model, file_info
     from baseline.run import load_run
 
-    trainer, _ = load_run(spec.dir)
+    trainer, _ = load_run(spec.dir, device="cpu")     # the codec runs on the CPU
     if trainer.phase != "adaptive":
         tqdm.write(f"note: {spec.label} stopped before the entropy model was trained "
                    f"(phase '{trainer.phase}'); its file is coded with an untrained context model")
@@ -202,11 +202,15 @@ def _stage_encode(spec: RunSpec, scene_path: str, record: dict) -> None:
 def _stage_decoded(spec: RunSpec, scene_path: str, record: dict, lpips_fn,
                    lpips: Optional[str]) -> None:
     from baseline.codec.model_codec import decode_model
+    from baseline.device import device_name, resolve_device
     from baseline.eval.evaluate import evaluate
+    from baseline.render import resolve_backend
     from baseline.run import load_scene_for
 
     pgs = spec.dir / MODEL_FILE
-    dec = decode_model(pgs)
+    dec = decode_model(pgs)                          # on the CPU, then rendered on the run's device
+    dev = resolve_device(spec.cfg.train.device)
+    dec.model.to(dev)
     scene = load_scene_for(dec.cfg, scene_path)
     cams = scene.test_cameras or scene.train_cameras
     backend = dec.cfg.train.rasterizer
@@ -217,7 +221,8 @@ def _stage_decoded(spec: RunSpec, scene_path: str, record: dict, lpips_fn,
            "lpips_weights": lpips if lpips_fn is not None else None,
            "gaussians_mean": ev["gaussians_mean"], "anchors": ev["anchors"],
            "split": "test" if scene.test_cameras else "train (no test views)",
-           "backend": backend, "has_cache": False, "fps_nocache": None, "psnr_nocache": None}
+           "backend": resolve_backend(backend, dec.model.xyz), "device": device_name(dev),
+           "has_cache": False, "fps_nocache": None, "psnr_nocache": None}
     prov = dec.model.provider
     if hasattr(prov, "build_cache") and hasattr(prov, "clear_cache"):
         prov.clear_cache()
@@ -295,6 +300,8 @@ def make_row(spec: RunSpec, res: dict, record: dict) -> dict:
         "anchors": dec["anchors"], "anchors_trained": res["anchors"],
         "gaussians_mean": dec["gaussians_mean"], "n_views": dec["n_views"], "split": dec["split"],
         "backend": dec["backend"], "phase_at_encode": enc["phase"],
+        # runs recorded before device support trained on the CPU (the only device then)
+        "device": res.get("device", "cpu"),
         "pre_encode": {k: res["test"].get(k) for k in ("psnr", "ssim", "fps")},
         "protocol": res.get("protocol", {}),
         "train_versions": res.get("versions", {}),

@@ -20,15 +20,18 @@ def evaluate(model, scene, cameras, *, phase: str, entropy=None, backend: str = 
     """Render ``cameras`` and report PSNR / SSIM (/ LPIPS) on uint8 images and FPS.
 
     FPS = 1 / mean(prefilter + decode + render time), the first ``fps_skip`` frames skipped
-    (SPEC.md section 2).
+    (SPEC.md section 2); on a GPU each frame is timed to the end of its work. The model renders
+    where it lives (``model.to(device)`` first).
     """
-    bg = scene.background.float()
+    bg = scene.background.float().to(model.xyz.device)
+    sync = (torch.cuda.synchronize if model.xyz.is_cuda else (lambda *a: None))
     ps, ss, lp, times, counts = [], [], [], [], []
     for i, cam in enumerate(cameras):
         t0 = time.perf_counter()
         res = render_view(model, cam, bg, phase=phase, training=False, entropy=entropy,
                           backend=backend, quantized_xyz=quantized_xyz)
         img = res.render.image
+        sync()                           # CUDA work is asynchronous: time it to the end
         times.append(time.perf_counter() - t0)
         counts.append(int(res.gaussians.means.shape[0]))
         a = to_uint8(img)

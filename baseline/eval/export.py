@@ -22,7 +22,7 @@ N_REST = 45
 
 @torch.no_grad()
 def gaussians_at_view(model, center: torch.Tensor, values: dict | None = None):
-    idx = torch.arange(model.n_anchors)
+    idx = torch.arange(model.n_anchors, device=model.xyz.device)
     return model.decode(center, idx, values)
 
 

@@ -298,7 +298,7 @@ def protocol_lines(results: dict) -> list[tuple[str, str]]:
     def per_method(key: str) -> str:
         vals = {}
         for r in runs:
-            vals.setdefault(str(r[key]), []).append(f"{r['method']} {_lam(r)}")
+            vals.setdefault(str(r.get(key, "cpu" if key == "device" else "-")), []).append(f"{r['method']} {_lam(r)}")
         if len(vals) <= 1:
             return next(iter(vals), "-")
         return "; ".join(f"{v} ({', '.join(who)})" for v, who in vals.items())
@@ -321,6 +321,7 @@ def protocol_lines(results: dict) -> list[tuple[str, str]]:
         ("--set", ", ".join(results.get("sets", [])) or "(none)"),
         ("iterations", per_method("iterations")),
         ("threads", per_method("threads")),
+        ("device", per_method("device")),
         ("backend", per_method("backend")),
         ("evaluated on", per_method("split")),
         ("LPIPS", str(results.get("lpips", "unavailable"))),

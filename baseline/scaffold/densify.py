@@ -16,6 +16,7 @@ from __future__ import annotations
 import torch
 
 from baseline import registry
+from baseline.device import uniform
 
 
 MIN_INTERVAL = 10
@@ -71,7 +72,7 @@ def grow_anchors(model, grads: torch.Tensor, eligible: torch.Tensor, cfg, voxel_
         thr = cfg.densify.grad_threshold * float((m.update_hierarchy_factor // 2) ** level)
         cand = (grads >= thr) & eligible
         keep_p = 0.5 ** (level + 1)
-        u = rand(N0 * K) if rand is not None else torch.rand(N0 * K, generator=generator)
+        u = (rand(N0 * K) if rand is not None else uniform(N0 * K, generator, grads.device)).to(grads.device)
         cand = cand & (u > keep_p)
         size = voxel_size * (m.update_init_factor // (m.update_hierarchy_factor ** level))
         if size <= 0:
@@ -83,18 +84,19 @@ def grow_anchors(model, grads: torch.Tensor, eligible: torch.Tensor, cfg, voxel_
             uniq, inverse = _unique_rows(cells)                                # [U,3], [C]
             existing = torch.round(model.xyz.detach().double() / size).long()   # [N,3], repeats ok
             both, inv_both = _unique_rows(torch.cat([existing, uniq], 0))
-            occupied = torch.zeros(len(both), dtype=torch.bool)
+            occupied = torch.zeros(len(both), dtype=torch.bool, device=both.device)
             occupied[inv_both[: len(existing)]] = True
             free = ~occupied[inv_both[len(existing):]]                         # [U]
             if free.any():
-                remap = torch.full((len(uniq),), -1, dtype=torch.long)
-                remap[free] = torch.arange(int(free.sum()))
+                remap = torch.full((len(uniq),), -1, dtype=torch.long, device=uniq.device)
+                remap[free] = torch.arange(int(free.sum()), device=uniq.device)
                 new_inv = remap[inverse]
                 ok = new_inv >= 0
                 parent = sel[ok] // K
                 new_xyz = (uniq[free].double() * size).float()
                 n_new = len(new_xyz)
-                new_scaling = torch.full((n_new, 6), float(torch.log(torch.tensor(size))))
+                new_scaling = torch.full((n_new, 6), float(torch.log(torch.tensor(size))),
+                                         device=new_xyz.device)
                 model.append_anchors(new_xyz, new_scaling, parent, new_inv[ok], optimizer)
         added += n_new
         if n_new == 0 and level == 0 and cfg.densify.reference_level_skip:
@@ -126,17 +128,19 @@ class ScaffoldDensify:
         self.log = {"grown": 0, "pruned": 0}
 
     def reset(self, N, K):
-        self.opacity_accum = torch.zeros(N)
-        self.anchor_demon = torch.zeros(N)
-        self.grad_accum = torch.zeros(N * K)
-        self.grad_denom = torch.zeros(N * K)
+        dev = self.t.model.xyz.device
+        self.opacity_accum = torch.zeros(N, device=dev)
+        self.anchor_demon = torch.zeros(N, device=dev)
+        self.grad_accum = torch.zeros(N * K, device=dev)
+        self.grad_denom = torch.zeros(N * K, device=dev)
 
     def state_dict(self):
         return {k: getattr(self, k) for k in ("opacity_accum", "anchor_demon", "grad_accum", "grad_denom")}
 
     def load_state_dict(self, s):
+        dev = self.t.model.xyz.device
         for k, v in s.items():
-            setattr(self, k, v.clone())
+            setattr(self, k, v.to(dev, copy=True))
 
     # -------------------------------------------------------------------------------- hooks
     def after_backward(self, it: int, ctx) -> None:
@@ -154,11 +158,11 @@ class ScaffoldDensify:
             grad = out.means2d.grad
             gn = torch.sqrt((grad[:, 0] * cam.width * 0.5) ** 2 + (grad[:, 1] * cam.height * 0.5) ** 2)
             vis_idx = vis.nonzero()[:, 0]
-            flat = (vis_idx[:, None] * K + torch.arange(K)[None, :]).reshape(-1)  # [M*K]
+            flat = (vis_idx[:, None] * K + torch.arange(K, device=vis_idx.device)[None, :]).reshape(-1)  # [M*K]
             kept = flat[g.selection]                                             # [G]
             upd = out.radii > 0
             self.grad_accum.index_add_(0, kept[upd], gn[upd])
-            self.grad_denom.index_add_(0, kept[upd], torch.ones(int(upd.sum())))
+            self.grad_denom.index_add_(0, kept[upd], torch.ones(int(upd.sum()), device=gn.device))
 
     def after_step(self, it: int) -> None:
         if not (self.update_from < it < self.update_until) or it % self.interval != 0:
@@ -180,7 +184,8 @@ class ScaffoldDensify:
         # reset statistics of the Gaussians that were eligible; zero stats for new anchors
         self.grad_denom[eligible] = 0
         self.grad_accum[eligible] = 0
-        pad = torch.zeros(added * K)
+        dev = self.grad_accum.device
+        pad = torch.zeros(added * K, device=dev)
         self.grad_denom = torch.cat([self.grad_denom, pad])
         self.grad_accum = torch.cat([self.grad_accum, pad])
         prune = (self.opacity_accum < cfg.densify.min_opacity * self.anchor_demon)
@@ -188,9 +193,9 @@ class ScaffoldDensify:
         prune = prune & counted
         self.opacity_accum[counted] = 0
         self.anchor_demon[counted] = 0
-        self.opacity_accum = torch.cat([self.opacity_accum, torch.zeros(added)])
-        self.anchor_demon = torch.cat([self.anchor_demon, torch.zeros(added)])
-        prune = torch.cat([prune, torch.zeros(added, dtype=torch.bool)])
+        self.opacity_accum = torch.cat([self.opacity_accum, torch.zeros(added, device=dev)])
+        self.anchor_demon = torch.cat([self.anchor_demon, torch.zeros(added, device=dev)])
+        prune = torch.cat([prune, torch.zeros(added, dtype=torch.bool, device=dev)])
         n_pruned = int(prune.sum())
         if n_pruned:
             keep = ~prune

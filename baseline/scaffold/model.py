@@ -110,6 +110,13 @@ class AnchorModel(nn.Module):
         self.decoder = DecoderMLPs(self.provider.feature_dim, K, cfg_model.hidden, cfg_model.use_distance)
         self.refiner = refiner_factory(self) if refiner_factory is not None else None
 
+    def _apply(self, fn, *args, **kwargs):
+        """``.to()`` / ``.cuda()`` / ``.cpu()`` also move a decoded model's fixed values."""
+        super()._apply(fn, *args, **kwargs)
+        if self.fixed_values is not None:
+            self.fixed_values = {k: fn(v) for k, v in self.fixed_values.items()}
+        return self
+
     # ------------------------------------------------------------------ per-anchor bookkeeping
     def add_per_anchor(self, name: str, value: torch.Tensor, grow_rule: Optional[GrowRule],
                        trainable: bool = True) -> None:
@@ -167,7 +174,7 @@ class AnchorModel(nn.Module):
             xyz = self.per_anchor["xyz"][idx]
         M, K = len(idx), self.n_offsets
         feat = self.provider.decoder_features(idx, values, xyz)
-        view = xyz - cam_center[None, :]
+        view = xyz - cam_center.to(xyz)[None, :]
         dist = view.norm(dim=1, keepdim=True).clamp_min(1e-8)
         view_dir = view / dist
         raw_op, raw_cov, raw_col = self.decoder(feat, view_dir, dist)

@@ -24,6 +24,7 @@ from tqdm import tqdm
 
 from baseline import registry
 from baseline.config import Config, to_toml
+from baseline.device import make_generator, resolve_device
 from baseline.fileio import atomic_path, write_text_atomic
 from baseline.pipeline import render_view
 from baseline.scaffold.build import build_entropy, build_model, entropy_param_groups
@@ -56,20 +57,37 @@ def set_threads(n: int) -> int:
 
 
 class Trainer:
-    def __init__(self, cfg: Config, scene, out_dir: str | Path, progress: bool = True):
+    """Trains one model on one scene.
+
+    Args:
+        device: where to train; None = the config's ``train.device`` (``auto``: a CUDA GPU when
+            torch sees one). The model, entropy model, background and each ground-truth image
+            live there; the scene's image cache stays in host memory.
+    """
+
+    def __init__(self, cfg: Config, scene, out_dir: str | Path, progress: bool = True,
+                 device: str | torch.device | None = None):
         self.cfg = cfg
         self.scene = scene
         self.out = Path(out_dir)
         self.progress = progress
+        self.device = resolve_device(str(device) if device is not None else cfg.train.device)
         self.threads = set_threads(cfg.train.threads)
         torch.manual_seed(cfg.train.seed)
         np.random.seed(cfg.train.seed)
         random.seed(cfg.train.seed)
+        # View order and growing draw from a CPU generator (the same stream on every device);
+        # the per-step noise and rate sample from one on the training device (on the CPU they
+        # are the same generator, as before device support).
         self.generator = torch.Generator().manual_seed(cfg.train.seed)
+        self.step_generator = (self.generator if self.device.type == "cpu"
+                               else make_generator(cfg.train.seed + 1, self.device))
         self.model, self.voxel_size = build_model(cfg, scene.points)
         self.entropy = build_entropy(cfg, self.model)
+        self.model.to(self.device)
+        self.entropy.to(self.device)
         self.extent = float(scene.extent)
-        self.background = scene.background.float()
+        self.background = scene.background.float().to(self.device)
         self.phase = "none"
         self.render_scale = 1.0
         self.extra_losses: dict = {}
@@ -143,7 +161,7 @@ class Trainer:
                 h.before_step(it)
         self.update_lr(it)
         cam = self.next_view()
-        gt = self.scene.image(cam)
+        gt = self.scene.image(cam).to(self.device, non_blocking=True)
         if self.render_scale != 1.0:
             cam_r = cam.scaled(self.render_scale)
             gt = torch.nn.functional.interpolate(
@@ -152,7 +170,7 @@ class Trainer:
             cam = cam_r
         res = render_view(self.model, cam, self.background, phase=self.phase, training=True,
                           entropy=self.entropy, rate_sample=cfg.entropy.rate_sample,
-                          backend=cfg.train.rasterizer, generator=self.generator)
+                          backend=cfg.train.rasterizer, generator=self.step_generator)
         g, out = res.gaussians, res.render
         if out.means2d.requires_grad:
             out.means2d.retain_grad()
@@ -262,7 +280,9 @@ class Trainer:
             "voxel_size": self.voxel_size,
             "view_order": list(self._view_order),
             "rng": {"torch": torch.get_rng_state(), "gen": self.generator.get_state(),
-                    "numpy": np.random.get_state(), "python": random.getstate()},
+                    "numpy": np.random.get_state(), "python": random.getstate(),
+                    **({"step_gen": self.step_generator.get_state(), "device": str(self.device)}
+                       if self.step_generator is not self.generator else {})},
         }
 
     def save_checkpoint(self, path: Optional[Path] = None) -> Path:
@@ -281,7 +301,8 @@ class Trainer:
             if k not in self.model.per_anchor:
                 raise ValueError(f"checkpoint {path} has per-anchor tensor '{k}' this model lacks")
             self.model.per_anchor[k] = torch.nn.Parameter(
-                torch.zeros(shape), requires_grad=self.model.per_anchor[k].requires_grad)
+                torch.zeros(shape, device=self.device),
+                requires_grad=self.model.per_anchor[k].requires_grad)
         check_finite(s["model"], path)
         self.model.load_state_dict(s["model"])
         self.entropy.load_state_dict(s["entropy"])
@@ -304,6 +325,11 @@ class Trainer:
                 h.restore(self.iteration)
         torch.set_rng_state(s["rng"]["torch"])
         self.generator.set_state(s["rng"]["gen"])
+        if self.step_generator is not self.generator and "step_gen" in s["rng"] \
+                and s["rng"].get("device", "").split(":")[0] == self.device.type:
+            self.step_generator.set_state(s["rng"]["step_gen"])
+        # (a checkpoint moved between devices keeps every tensor; only the per-step noise
+        # stream, which belongs to the device it was drawn on, starts afresh)
         np.random.set_state(s["rng"]["numpy"])
         random.setstate(s["rng"]["python"])
 

@@ -1,0 +1,62 @@
+"""Where tensors live: the run's device (``train.device``) and random draws that follow it.
+
+Training runs on one device: the CPU (numba rasterizer and hash-grid kernels) or a CUDA GPU
+(gsplat rasterizer, PyTorch hash grid). The codec always runs on the CPU: its probabilities come
+from a float64 path that must give the same bits on the encoder's and the decoder's machine, so
+a file written after GPU training decodes exactly anywhere.
+"""
+from __future__ import annotations
+
+from typing import Optional
+
+import torch
+
+
+def resolve_device(name: str = "auto") -> torch.device:
+    """``auto`` -> ``cuda`` when this PyTorch sees a GPU, else ``cpu``; ``cpu``, ``cuda``,
+    ``cuda:N`` as given, checked against what is there (a clear error, not a crash later)."""
+    if name in ("", "auto"):
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    try:
+        dev = torch.device(name)
+    except RuntimeError:
+        raise ValueError(f"unknown device '{name}': use auto, cpu, cuda or cuda:N") from None
+    if dev.type == "cuda":
+        if not torch.cuda.is_available():
+            raise RuntimeError(
+                f"device '{name}' was asked for, but this PyTorch ({torch.__version__}, CUDA "
+                f"{torch.version.cuda}) sees no CUDA GPU: install a CUDA build of torch, or use "
+                f"--set train.device=cpu")
+        if dev.index is not None and dev.index >= torch.cuda.device_count():
+            raise RuntimeError(f"device '{name}': only {torch.cuda.device_count()} CUDA GPU(s) here")
+    elif dev.type != "cpu":
+        raise ValueError(f"device '{name}': only cpu and cuda are supported")
+    return dev
+
+
+def device_name(dev: torch.device) -> str:
+    """A human-readable name for reports: the GPU's model, or ``cpu``."""
+    if dev.type == "cuda":
+        return f"{dev} ({torch.cuda.get_device_name(dev)})"
+    return "cpu"
+
+
+def make_generator(seed: int, device: torch.device) -> torch.Generator:
+    """A generator on ``device`` (draws then happen where the tensors are, no transfer)."""
+    return torch.Generator(device=device).manual_seed(seed)
+
+
+def uniform(shape, generator: Optional[torch.Generator], device: torch.device | str,
+            dtype: torch.dtype = torch.float32) -> torch.Tensor:
+    """U[0, 1) draws of ``shape`` on ``device``, from ``generator`` (None: the global one).
+
+    Drawn on the generator's own device, moved only when that differs from ``device``, so CPU
+    runs draw exactly what they drew before device support existed.
+    """
+    device = torch.device(device)
+    if generator is None:
+        return torch.rand(shape, device=device, dtype=dtype)
+    g_dev = generator.device
+    if g_dev.type == device.type and (g_dev.index or 0) == (device.index or 0):
+        return torch.rand(shape, generator=generator, device=device, dtype=dtype)
+    return torch.rand(shape, generator=generator, device=g_dev, dtype=dtype).to(device)
