@@ -13,7 +13,6 @@ import torch
 
 from baseline.codec.model_codec import decode_model, encode_model
 from baseline.config import ConfigError, build_config, config_hash
-from baseline.data.scene import load_scene
 from baseline.data.synthetic import make_scene
 from baseline.device import resolve_device, uniform
 from baseline.eval.evaluate import evaluate

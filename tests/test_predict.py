@@ -105,7 +105,6 @@ def test_stage_switch_and_resolution_hook():
 def test_loaded_run_renders_with_its_refiner(tmp_path):
     """A stage-2 run loaded from its checkpoint renders like the trainer that wrote it (the
     MGRD switched on by the hooks' restore, not left off until a training step)."""
-    from baseline.data.scene import load_scene
     from baseline.data.synthetic import make_scene
     from baseline.run import evaluate_trainer, load_run, train_run
 

@@ -11,7 +11,6 @@ Hooks steer the trainer through ``trainer.phase`` (quantization phase), ``traine
 from __future__ import annotations
 
 import json
-import math
 import os
 import random
 import time
