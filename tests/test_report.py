@@ -119,6 +119,19 @@ def test_report_text_and_markdown(tmp_path):
     json.dumps(res)               # still serializable after the report added its fields
 
 
+def test_protocol_names_the_device():
+    """Rows recorded before device support trained on the CPU; mixed devices are listed."""
+    from baseline.eval.report import protocol_lines
+
+    res = stored_results()
+    assert dict(protocol_lines(res))["device"] == "cpu"
+    for r in res["runs"]:
+        if r["method"] == "predict-gs":
+            r["device"] = "cuda:0 (NVIDIA H100 80GB HBM3)"
+    dev = dict(protocol_lines(res))["device"]
+    assert "cuda:0 (NVIDIA H100 80GB HBM3) (predict-gs" in dev and "cpu (baseline" in dev
+
+
 def test_report_with_single_points_and_lpips(tmp_path):
     res = stored_results()
     res["runs"] = [r for r in res["runs"] if r["lmbda"] == 0.004]
