@@ -12,6 +12,10 @@ from typing import Optional
 import torch
 
 
+class DeviceError(ValueError):
+    """A device that cannot be used here (the message says why and what to do instead)."""
+
+
 def resolve_device(name: str = "auto") -> torch.device:
     """``auto`` -> ``cuda`` when this PyTorch sees a GPU, else ``cpu``; ``cpu``, ``cuda``,
     ``cuda:N`` as given, checked against what is there (a clear error, not a crash later)."""
@@ -20,17 +24,17 @@ def resolve_device(name: str = "auto") -> torch.device:
     try:
         dev = torch.device(name)
     except RuntimeError:
-        raise ValueError(f"unknown device '{name}': use auto, cpu, cuda or cuda:N") from None
+        raise DeviceError(f"unknown device '{name}': use auto, cpu, cuda or cuda:N") from None
     if dev.type == "cuda":
         if not torch.cuda.is_available():
-            raise RuntimeError(
+            raise DeviceError(
                 f"device '{name}' was asked for, but this PyTorch ({torch.__version__}, CUDA "
                 f"{torch.version.cuda}) sees no CUDA GPU: install a CUDA build of torch, or use "
                 f"--set train.device=cpu")
         if dev.index is not None and dev.index >= torch.cuda.device_count():
-            raise RuntimeError(f"device '{name}': only {torch.cuda.device_count()} CUDA GPU(s) here")
+            raise DeviceError(f"device '{name}': only {torch.cuda.device_count()} CUDA GPU(s) here")
     elif dev.type != "cpu":
-        raise ValueError(f"device '{name}': only cpu and cuda are supported")
+        raise DeviceError(f"device '{name}': only cpu and cuda are supported")
     return dev
 
 

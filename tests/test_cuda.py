@@ -14,7 +14,7 @@ import torch
 from baseline.codec.model_codec import decode_model, encode_model
 from baseline.config import ConfigError, build_config, config_hash
 from baseline.data.synthetic import make_scene
-from baseline.device import resolve_device, uniform
+from baseline.device import DeviceError, resolve_device, uniform
 from baseline.eval.evaluate import evaluate
 from baseline.pipeline import quantized_positions
 from baseline.run import load_run, train_run
@@ -39,10 +39,21 @@ def test_resolve_device():
     assert resolve_device("cpu") == torch.device("cpu")
     assert resolve_device("auto").type == ("cuda" if torch.cuda.is_available() else "cpu")
     if not torch.cuda.is_available():
-        with pytest.raises(RuntimeError, match="sees no CUDA GPU"):
+        with pytest.raises(DeviceError, match="sees no CUDA GPU"):
             resolve_device("cuda")
-    with pytest.raises(ValueError, match="device"):
+    with pytest.raises(DeviceError, match="device"):
         resolve_device("tpu")
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="checks the error where there is no GPU")
+def test_cli_names_a_missing_gpu(tmp_path, capsys):
+    from baseline.cli import main
+
+    make_scene(tmp_path / "s", n_views=4, width=16, height=12, seed=0)
+    assert main(["train", str(tmp_path / "s"), "--out", str(tmp_path / "r"), "--patch", "demo",
+                 "--device", "cuda", "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert "pgs train: error: device 'cuda'" in err and "train.device=cpu" in err
 
 
 def test_uniform_on_the_cpu_draws_the_old_stream():
