@@ -90,3 +90,16 @@ def test_parse_set_errors():
     with pytest.raises(ConfigError):
         parse_set("iterations=3")
     assert parse_set("a.b.c=x") == {"a": {"b": {"c": "x"}}}
+
+
+def test_every_shipped_patch_builds_and_changes_something():
+    """Each file in patches/ parses, names only known keys, and changes the configuration
+    (except `low-rate`, which restates the default lambda 0.004 by name)."""
+    from baseline.config import PATCH_DIR, default_config, to_dict
+    names = sorted(p.stem for p in PATCH_DIR.glob("*.toml"))
+    assert "masks-x4" in names and "predict-gs" in names
+    base = to_dict(default_config(), drop_meta=True)
+    for name in names:
+        cfg = build_config([name])
+        assert (to_dict(cfg, drop_meta=True) == base) == (name == "low-rate"), name
+    assert build_config(["masks-x4"]).entropy.mask_lambda == pytest.approx(4 * 5e-4)
