@@ -8,29 +8,41 @@ import torch.nn.functional as F
 
 
 @functools.lru_cache(maxsize=4)
-def _window(size: int = 11, sigma: float = 1.5, channels: int = 3) -> torch.Tensor:
-    x = torch.arange(size, dtype=torch.float32) - (size - 1) / 2
+def _taps(size: int = 11, sigma: float = 1.5) -> torch.Tensor:
+    """[size] normalized 1D Gaussian (float64; cast to the image's dtype where used); the 2D
+    window is its outer product."""
+    x = torch.arange(size, dtype=torch.float64) - (size - 1) / 2
     g = torch.exp(-(x ** 2) / (2 * sigma ** 2))
-    g = g / g.sum()
-    w2 = (g[:, None] * g[None, :])[None, None]
-    return w2.expand(channels, 1, size, size).contiguous()
+    return g / g.sum()
+
+
+def gaussian_blur(t: torch.Tensor, size: int = 11, sigma: float = 1.5) -> torch.Tensor:
+    """[B,H,W] -> [B,H,W]: each map convolved with the ``size`` x ``size`` Gaussian window,
+    zero padding. Done as a row pass then a column pass: the window is separable and zero padding
+    keeps it so (the border sums only in-bounds pixels either way), 2 x 11 taps instead of 121.
+    SSIM forward + backward with this blur vs the 2D depthwise convolution, one thread (a training
+    run beside it): 39 vs 52 ms at 245x136, 262 vs 522 ms at 640x480."""
+    n = t.shape[0]
+    g = _taps(size, sigma).to(t)
+    pad = size // 2
+    x = F.conv2d(t[None], g.view(1, 1, 1, size).expand(n, 1, 1, size), padding=(0, pad), groups=n)
+    return F.conv2d(x, g.view(1, 1, size, 1).expand(n, 1, size, 1), padding=(pad, 0), groups=n)[0]
 
 
 def ssim(img: torch.Tensor, gt: torch.Tensor, size: int = 11, sigma: float = 1.5) -> torch.Tensor:
     """Differentiable mean SSIM of two images [H,W,C] in [0,1] (zero padding, as 3DGS's loss).
 
-    Used for the training loss only; reported metrics use scikit-image on uint8 images.
+    Used for the training loss only; reported metrics use scikit-image on uint8 images. The five
+    local moments are blurred in one call.
     """
     C = img.shape[-1]
-    x = img.permute(2, 0, 1)[None]
-    y = gt.permute(2, 0, 1)[None]
-    w = _window(size, sigma, C).to(img)
-    pad = size // 2
-    mu_x = F.conv2d(x, w, padding=pad, groups=C)
-    mu_y = F.conv2d(y, w, padding=pad, groups=C)
-    sxx = F.conv2d(x * x, w, padding=pad, groups=C) - mu_x ** 2
-    syy = F.conv2d(y * y, w, padding=pad, groups=C) - mu_y ** 2
-    sxy = F.conv2d(x * y, w, padding=pad, groups=C) - mu_x * mu_y
+    x = img.permute(2, 0, 1)
+    y = gt.permute(2, 0, 1)
+    mu_x, mu_y, exx, eyy, exy = gaussian_blur(
+        torch.cat([x, y, x * x, y * y, x * y], 0), size, sigma).split(C, 0)
+    sxx = exx - mu_x ** 2
+    syy = eyy - mu_y ** 2
+    sxy = exy - mu_x * mu_y
     c1, c2 = 0.01 ** 2, 0.03 ** 2
     num = (2 * mu_x * mu_y + c1) * (2 * sxy + c2)
     den = (mu_x ** 2 + mu_y ** 2 + c1) * (sxx + syy + c2)
