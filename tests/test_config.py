@@ -102,4 +102,5 @@ def test_every_shipped_patch_builds_and_changes_something():
     for name in names:
         cfg = build_config([name])
         assert (to_dict(cfg, drop_meta=True) == base) == (name == "low-rate"), name
-    assert build_config(["masks-x4"]).entropy.mask_lambda == pytest.approx(4 * 5e-4)
+    assert build_config(["masks-x4"]).entropy.mask_lambda == pytest.approx(
+        4 * default_config().entropy.mask_lambda)

@@ -5,13 +5,18 @@ import torch.nn.functional as F
 from baseline.train.losses import gaussian_blur, reconstruction_loss, ssim
 
 
-def ssim_2d(img, gt, size=11, sigma=1.5):
-    """The definition: 2D Gaussian window (outer product), depthwise conv, zero padding."""
+def window_2d(size=11, sigma=1.5):
+    """[size,size] float64: the 2D Gaussian window, written out independently of the module."""
     x = torch.arange(size, dtype=torch.float64) - (size - 1) / 2
     g = torch.exp(-(x ** 2) / (2 * sigma ** 2))
     g = g / g.sum()
+    return g[:, None] * g[None, :]
+
+
+def ssim_2d(img, gt, size=11, sigma=1.5):
+    """The definition: 2D Gaussian window, depthwise conv, zero padding."""
     C = img.shape[-1]
-    w = (g[:, None] * g[None, :]).expand(C, 1, size, size).to(img)
+    w = window_2d(size, sigma).expand(C, 1, size, size).to(img)
     a, b = img.permute(2, 0, 1)[None], gt.permute(2, 0, 1)[None]
     blur = lambda t: F.conv2d(t, w, padding=size // 2, groups=C)  # noqa: E731
     mx, my = blur(a), blur(b)
@@ -25,10 +30,7 @@ def test_blur_matches_the_2d_window_at_the_borders():
     t[0, 0, 0] = 1.0                          # a corner impulse: the border is where padding shows
     t[0, 4, 12] = 2.0
     got = gaussian_blur(t)
-    x = torch.arange(11, dtype=torch.float64) - 5
-    g = torch.exp(-x ** 2 / (2 * 1.5 ** 2))
-    g = g / g.sum()
-    ref = F.conv2d(t[None], (g[:, None] * g[None, :])[None, None], padding=5)[0]
+    ref = F.conv2d(t[None], window_2d()[None, None], padding=5)[0]
     assert torch.allclose(got, ref, atol=1e-15)
 
 
