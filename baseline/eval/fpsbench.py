@@ -1,0 +1,214 @@
+"""``pgs bench fps``: rendering speed of decoded models against a reference, in one process.
+
+FPS taken by ``pgs compare`` is one pass over the test views per run, measured whenever the run
+finished; on this machine the same decoded file measured in two sessions gave 2.9 and 5.1 FPS, so
+the ratio of two such figures is not a measurement. This bench decodes every file first, then
+renders the same views with each model in turn, several rounds, the order rotated every round
+(so neither a warm-up nor a slow drift of the machine favours one model), and reports each
+model's FPS as the median over rounds and its speed ratio to the first model from the per-round
+pairs (median, min and max).
+
+A model whose feature provider can cache its per-anchor features (Predict-GS's f_c) is timed
+twice: with the cache (how a decoded model renders) and without it (features recomputed every
+view); the cache is built or dropped outside the timed frames.
+"""
+from __future__ import annotations
+
+import statistics
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import List, Optional, Sequence
+
+import torch
+
+from baseline.codec.model_codec import decode_model
+from baseline.pipeline import render_view
+
+MODEL_FILE = "model.pgs"
+
+
+@dataclass
+class Contender:
+    label: str
+    model: object
+    cache: Optional[bool]        # None: the provider has no cache; True / False: with / without
+
+
+def resolve_model_file(path: str | Path) -> Path:
+    """A ``.pgs`` file, or a run folder holding ``model.pgs`` (what ``pgs compare`` writes)."""
+    p = Path(path)
+    if p.is_dir():
+        p = p / MODEL_FILE
+    if not p.is_file():
+        raise FileNotFoundError(f"{path}: no such .pgs file (nor a run folder with {MODEL_FILE}; "
+                                f"encode it first: pgs encode RUN -o FILE.pgs)")
+    return p
+
+
+def contenders_of(label: str, model) -> List[Contender]:
+    prov = getattr(model, "provider", None)
+    if hasattr(prov, "build_cache") and hasattr(prov, "clear_cache"):
+        return [Contender(label, model, True), Contender(f"{label} (no cache)", model, False)]
+    return [Contender(label, model, None)]
+
+
+def _set_cache(c: Contender) -> None:
+    if c.cache is None:
+        return
+    prov = c.model.provider
+    if c.cache:
+        if prov._cache is None:
+            prov.build_cache(c.model.xyz)
+    else:
+        prov.clear_cache()
+
+
+@torch.no_grad()
+def _time_views(c: Contender, cameras, background, backend: str) -> tuple[float, float]:
+    """Mean seconds per view (prefilter + Gaussian decoding + rasterization) and mean Gaussians."""
+    sync = torch.cuda.synchronize if c.model.xyz.is_cuda else (lambda *a: None)
+    total, count = 0.0, 0
+    for cam in cameras:
+        sync()
+        t0 = time.perf_counter()
+        res = render_view(c.model, cam, background, phase="decoded", training=False,
+                          backend=backend)
+        sync()
+        total += time.perf_counter() - t0
+        count += int(res.gaussians.means.shape[0])
+    return total / len(cameras), count / len(cameras)
+
+
+def run_fps_bench(contenders: Sequence[Contender], cameras, background: torch.Tensor, *,
+                  rounds: int = 5, backend: str = "auto", warmup: bool = True) -> List[dict]:
+    """Time every contender on ``cameras``, ``rounds`` times, in an order rotated each round.
+
+    Args:
+        contenders: the first is the reference of the ratios.
+        cameras: the views (the same for all contenders).
+        background: [3] on the models' device.
+
+    Returns:
+        One dict per contender: ``label, gaussians_per_view, fps`` (1 / median over rounds of
+        the mean time per view), ``fps_min, fps_max`` (over rounds), ``ratio, ratio_min,
+        ratio_max`` (per round: reference time / this time, i.e. > 1 = faster than the
+        reference; median, min, max), ``seconds`` ([rounds] mean time per view).
+    """
+    if not contenders:
+        raise ValueError("fps bench: no model to time")
+    if not cameras:
+        raise ValueError("fps bench: the scene has no view to render")
+    if rounds < 1:
+        raise ValueError(f"fps bench: rounds must be >= 1, got {rounds}")
+    n = len(contenders)
+    times = [[0.0] * rounds for _ in range(n)]
+    gaussians = [0.0] * n
+    if warmup:      # compile kernels, fill caches, allocate: one untimed view per contender
+        for c in contenders:
+            _set_cache(c)
+            _time_views(c, cameras[:1], background, backend)
+    for r in range(rounds):
+        for j in range(n):
+            i = (j + r) % n
+            _set_cache(contenders[i])
+            times[i][r], gaussians[i] = _time_views(contenders[i], cameras, background, backend)
+    for c in contenders:            # leave models as decoded (cache on)
+        if c.cache is not None:
+            _set_cache(Contender(c.label, c.model, True))
+    rows = []
+    for i, c in enumerate(contenders):
+        ratios = [times[0][r] / times[i][r] for r in range(rounds)]
+        rows.append(dict(label=c.label, gaussians_per_view=gaussians[i],
+                         fps=1.0 / statistics.median(times[i]), fps_min=1.0 / max(times[i]),
+                         fps_max=1.0 / min(times[i]), ratio=statistics.median(ratios),
+                         ratio_min=min(ratios), ratio_max=max(ratios), seconds=list(times[i])))
+    return rows
+
+
+def _scene_key(cfg, scene_path: str) -> tuple:
+    d = cfg.data
+    return (str(Path(scene_path).resolve()), d.resolution, d.images, d.eval, d.test_every,
+            d.background)
+
+
+def bench_files(paths: Sequence[str], *, scene: Optional[str] = None, rounds: int = 5,
+                threads: Optional[int] = None, device: str = "cpu",
+                max_views: Optional[int] = None) -> dict:
+    """Decode each file (or run folder) and time them on the test views of their common scene.
+
+    The scene comes from ``scene`` or from each file's header (``pgs compare`` and ``pgs encode``
+    record it); all files must render the same views (scene, resolution, split, background).
+    """
+    from baseline.render import cpu as cpu_backend
+
+    if not paths:
+        raise ValueError("fps bench: give at least one --run (a .pgs file or a run folder)")
+    old_threads, old_cpu_threads = torch.get_num_threads(), cpu_backend._THREADS
+    if threads:
+        torch.set_num_threads(int(threads))
+        cpu_backend.set_num_threads(int(threads))
+    try:
+        return _bench_files(paths, scene, rounds, device, max_views)
+    finally:
+        torch.set_num_threads(old_threads)
+        cpu_backend.set_num_threads(old_cpu_threads)
+
+
+def _bench_files(paths, scene, rounds, device, max_views) -> dict:
+    from baseline.device import device_name, resolve_device
+    from baseline.render import resolve_backend
+    from baseline.run import load_scene_for
+
+    dev = resolve_device(device)
+    decoded, key0, label_seen = [], None, set()
+    for p in paths:
+        f = resolve_model_file(p)
+        dec = decode_model(f)
+        sp = scene or dec.scene_path
+        if not sp:
+            raise ValueError(f"{f}: the file does not name its scene; pass --scene PATH")
+        key = _scene_key(dec.cfg, sp)
+        if key0 is None:
+            key0, cfg0, scene_path0 = key, dec.cfg, sp
+        elif key != key0:
+            raise ValueError(f"fps bench compares models on the same views: {f} renders {key}, "
+                             f"the first file {key0}")
+        label = Path(p).name if Path(p).is_dir() else f.stem
+        while label in label_seen:
+            label += "'"
+        label_seen.add(label)
+        dec.model.to(dev)
+        decoded.append((label, dec))
+    sc = load_scene_for(cfg0, scene_path0, progress=False)
+    cams = list(sc.test_cameras or sc.train_cameras)
+    if max_views:
+        cams = cams[:max_views]
+    bg = sc.background.float().to(dev)
+    backend = cfg0.train.rasterizer
+    contenders = [c for label, dec in decoded for c in contenders_of(label, dec.model)]
+    rows = run_fps_bench(contenders, cams, bg, rounds=rounds, backend=backend)
+    return dict(rows=rows, views=len(cams), split="test" if sc.test_cameras else "train",
+                rounds=rounds, threads=torch.get_num_threads(), device=device_name(dev),
+                backend=resolve_backend(backend, decoded[0][1].model.xyz),
+                scene=scene_path0, size=f"{cams[0].width}x{cams[0].height}")
+
+
+def format_fps_bench(res: dict) -> str:
+    rows = res["rows"]
+    w = max(12, max(len(r["label"]) for r in rows))
+    lines = [f"fps bench: {res['views']} {res['split']} views of {res['scene']} at {res['size']}, "
+             f"{res['rounds']} rounds (order rotated), {res['threads']} thread(s), "
+             f"{res['device']}, backend {res['backend']}",
+             f"{'model':<{w}}  {'Gaussians/view':>14}  {'FPS':>7}  {'FPS range':>15}  "
+             f"{'x ref':>6}  {'x ref range':>13}",
+             "-" * (w + 64)]
+    for i, r in enumerate(rows):
+        ref = "ref" if i == 0 else f"{r['ratio']:.3f}"
+        rng = "" if i == 0 else f"{r['ratio_min']:.3f}-{r['ratio_max']:.3f}"
+        lines.append(f"{r['label']:<{w}}  {r['gaussians_per_view']:>14,.0f}  {r['fps']:>7.2f}  "
+                     f"{r['fps_min']:>7.2f}-{r['fps_max']:<7.2f}  {ref:>6}  {rng:>13}")
+    lines.append("FPS = 1 / median over rounds of the mean time per view (prefilter + Gaussian "
+                 "decoding + rasterization); x ref = reference time / this time per round "
+                 "(> 1: faster), median and range over rounds.")
+    return "\n".join(lines)

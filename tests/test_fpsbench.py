@@ -1,0 +1,126 @@
+"""pgs bench fps: decoded models timed on the same views, rounds in rotated order, ratios to the
+first. Correctness only (the arithmetic, the order, the contenders, errors); never wall-clock."""
+import math
+import shutil
+
+import pytest
+import torch
+
+from baseline.codec.model_codec import decode_model, encode_model
+from baseline.config import build_config
+from baseline.data.scene import load_scene
+from baseline.data.synthetic import make_scene
+from baseline.eval import fpsbench
+from baseline.eval.evaluate import evaluate
+from baseline.eval.fpsbench import Contender, bench_files, format_fps_bench, run_fps_bench
+from baseline.train.trainer import Trainer
+
+
+@pytest.fixture(scope="module")
+def files(tmp_path_factory):
+    """A baseline and a Predict-GS file of the same small scene (short training)."""
+    d = tmp_path_factory.mktemp("fpsbench")
+    make_scene(d / "scene", n_views=10, width=48, height=36, seed=5)
+    scene = load_scene(d / "scene")
+    torch.set_num_threads(1)
+    out = {"scene": d / "scene"}
+    for name, patches in (("baseline", []), ("predict-gs", ["predict-gs"])):
+        cfg = build_config(["demo", *patches], ["train.iterations=120", "train.threads=1",
+                                                "train.log_every=1000"])
+        t = Trainer(cfg, scene, d / name, progress=False)
+        t.train()
+        encode_model(t.cfg, t.model, t.entropy, d / name / "model.pgs",
+                     extra_header={"scene": str(d / "scene")})
+        out[name] = d / name
+        if name == "baseline":          # the same model: a file without its scene, one elsewhere
+            encode_model(t.cfg, t.model, t.entropy, d / "noscene.pgs")
+            shutil.copytree(d / "scene", d / "scene-copy")
+            encode_model(t.cfg, t.model, t.entropy, d / "elsewhere.pgs",
+                         extra_header={"scene": str(d / "scene-copy")})
+            out.update(noscene=d / "noscene.pgs", elsewhere=d / "elsewhere.pgs")
+    return out
+
+
+def test_bench_rows_contenders_and_counts(files):
+    res = bench_files([str(files["baseline"]), str(files["predict-gs"] / "model.pgs")], rounds=2,
+                      threads=1)
+    labels = [r["label"] for r in res["rows"]]
+    # the baseline has no cache; Predict-GS is timed with its f_c cache and without
+    assert labels == ["baseline", "model", "model (no cache)"]
+    ref = res["rows"][0]
+    assert ref["ratio"] == ref["ratio_min"] == ref["ratio_max"] == 1.0
+    for r in res["rows"]:
+        assert len(r["seconds"]) == 2 and all(s > 0 for s in r["seconds"])
+        assert math.isfinite(r["fps"]) and r["fps_min"] <= r["fps"] <= r["fps_max"]
+        assert r["ratio_min"] <= r["ratio"] <= r["ratio_max"]
+    # Gaussians per view: what evaluate() renders on the same views
+    sc = load_scene(files["scene"])
+    for label, path in (("baseline", files["baseline"] / "model.pgs"),
+                        ("model", files["predict-gs"] / "model.pgs")):
+        dec = decode_model(path)
+        ev = evaluate(dec.model, sc, sc.test_cameras, phase="decoded", backend="cpu")
+        row = next(r for r in res["rows"] if r["label"] == label)
+        assert row["gaussians_per_view"] == pytest.approx(ev["gaussians_mean"])
+    assert res["views"] == len(sc.test_cameras) and res["split"] == "test"
+    text = format_fps_bench(res)
+    assert "ref" in text and "model (no cache)" in text
+
+
+def test_same_file_twice_gets_distinct_labels(files):
+    res = bench_files([str(files["baseline"])] * 2, rounds=1, threads=1, max_views=1)
+    assert [r["label"] for r in res["rows"]] == ["baseline", "baseline'"]
+    assert res["views"] == 1
+
+
+class _Fake:
+    def __init__(self):
+        self.xyz = torch.zeros(1, 3)
+
+
+def test_rotation_and_ratio_arithmetic(monkeypatch):
+    """Round r times contender (j + r) % n at position j; FPS = 1 / median time; ratio per round."""
+    a, b, c = (Contender(x, _Fake(), None) for x in "abc")
+    per = {"a": [0.1, 0.2, 0.4], "b": [0.2, 0.2, 0.2], "c": [0.05, 0.5, 0.1]}
+    calls = []
+
+    def fake_time(cont, cameras, background, backend):
+        r = sum(1 for x in calls if x == cont.label)
+        calls.append(cont.label)
+        return per[cont.label][r], 7.0
+
+    monkeypatch.setattr(fpsbench, "_time_views", fake_time)
+    rows = run_fps_bench([a, b, c], [object()], torch.zeros(3), rounds=3, warmup=False)
+    assert calls == ["a", "b", "c", "b", "c", "a", "c", "a", "b"]
+    ra, rb, rc = rows
+    assert ra["fps"] == pytest.approx(1 / 0.2) and rb["fps"] == pytest.approx(5.0)
+    assert rc["fps"] == pytest.approx(1 / 0.1)
+    assert (rc["fps_min"], rc["fps_max"]) == (pytest.approx(2.0), pytest.approx(20.0))
+    # per-round ratios a/b: 0.5, 1, 2 -> median 1; a/c: 2, 0.4, 4 -> median 2
+    assert (rb["ratio"], rb["ratio_min"], rb["ratio_max"]) == (pytest.approx(1.0),
+                                                                pytest.approx(0.5),
+                                                                pytest.approx(2.0))
+    assert rc["ratio"] == pytest.approx(2.0) and rc["ratio_min"] == pytest.approx(0.4)
+    assert ra["gaussians_per_view"] == 7.0
+
+
+def test_bad_inputs_are_named(files, tmp_path):
+    with pytest.raises(FileNotFoundError, match="no such .pgs file"):
+        bench_files([str(tmp_path / "nothing")])
+    with pytest.raises(ValueError, match="at least one"):
+        bench_files([])
+    with pytest.raises(ValueError, match="rounds must be"):
+        run_fps_bench([Contender("a", _Fake(), None)], [object()], torch.zeros(3), rounds=0)
+    with pytest.raises(ValueError, match="does not name its scene"):
+        bench_files([str(files["noscene"])])
+    # another scene folder: not the same views, so no ratio
+    with pytest.raises(ValueError, match="same views"):
+        bench_files([str(files["baseline"]), str(files["elsewhere"])], rounds=1)
+
+
+def test_cli_prints_the_table(files, capsys):
+    from baseline.cli import main
+
+    assert main(["bench", "fps", "--run", str(files["baseline"]), "--run",
+                 str(files["predict-gs"]), "--rounds", "1", "--views", "1", "--threads", "1"]) == 0
+    out = capsys.readouterr().out
+    assert "1 test views" in out and "predict-gs (no cache)" in out
