@@ -141,6 +141,7 @@ def cmd_encode(args) -> int:
 
 def cmd_decode(args) -> int:
     from baseline.codec.model_codec import decode_model
+    from baseline.contracts import feature_cache
     from baseline.eval.export import export_run_ply
     from baseline.run import Renderable, write_json_atomic
 
@@ -155,8 +156,8 @@ def cmd_decode(args) -> int:
         res[args.render] = r.evaluate(args.render, render_dir=out / "renders" / args.render)
         t = res[args.render]
         print(f"{args.render}: PSNR {t['psnr']:.3f} dB  SSIM {t['ssim']:.4f}  FPS {t['fps']:.1f}")
-        prov = r.model.provider
-        if hasattr(prov, "clear_cache"):     # Predict-GS: FPS without the decoded-model f_c cache
+        prov = feature_cache(r.model)
+        if prov is not None:                 # Predict-GS: FPS without the decoded-model f_c cache
             prov.clear_cache()
             nc = r.evaluate(args.render)
             prov.build_cache(r.model.xyz)

@@ -11,6 +11,10 @@ than the config (e.g. a hash grid sized from the anchor count at the start of tr
 ``codec_state() -> dict`` (JSON-able); the encoder keeps it in the file header and the decoder
 builds the module as ``cls(model, cfg, codec_state=state)``, so a decoded model never re-derives
 it from the decoded (grown and pruned) anchors.
+
+A provider whose features depend on the anchor positions only (Predict-GS's SFP) may also define
+``build_cache(xyz)`` / ``clear_cache()``: decoded models compute the features once
+(:func:`feature_cache` finds such a provider).
 """
 from __future__ import annotations
 
@@ -34,6 +38,13 @@ class CodedAttribute:
     dims: int
     q0: float
     masked: bool = False
+
+
+def feature_cache(model):
+    """The model's feature provider when it implements the optional decoded-model cache
+    (``build_cache(xyz)`` / ``clear_cache()``), else None."""
+    prov = getattr(model, "provider", None)
+    return prov if hasattr(prov, "build_cache") and hasattr(prov, "clear_cache") else None
 
 
 # The baseline's coded attributes for K = 10 offsets and a 50-dim feature (SPEC.md section 3).

@@ -62,8 +62,16 @@ def test_bench_rows_contenders_and_counts(files):
         row = next(r for r in res["rows"] if r["label"] == label)
         assert row["gaussians_per_view"] == pytest.approx(ev["gaussians_mean"])
     assert res["views"] == len(sc.test_cameras) and res["split"] == "test"
-    text = format_fps_bench(res)
-    assert "ref" in text and "model (no cache)" in text
+    body = format_fps_bench(res).splitlines()[3:-1]              # one line per row, in order
+    assert [ln.startswith(r["label"] + " ") for ln, r in zip(body, res["rows"])] == [True] * 3
+    assert body[0].split()[-1] == "ref"                             # the reference row
+    for ln, r in zip(body[1:], res["rows"][1:]):
+        assert ln.split()[-2:] == [f"{r['ratio']:.3f}", f"{r['ratio_min']:.3f}-{r['ratio_max']:.3f}"]
+    # decoded models are left as decoded: the f_c cache built again after the no-cache rounds
+    dec = decode_model(files["predict-gs"] / "model.pgs")
+    contenders = fpsbench.contenders_of("m", dec.model)
+    run_fps_bench(contenders, sc.test_cameras[:1], sc.background.float(), rounds=1)
+    assert dec.model.provider._cache is not None
 
 
 def test_same_file_twice_gets_distinct_labels(files):

@@ -33,6 +33,7 @@ from baseline.codec.rangecoder import (anchor_bounds, bernoulli_counts, decode_b
                                        dequantize_positions, encode_bernoulli, pack_positions,
                                        quantize_positions, unpack_positions)
 from baseline.codec.weights import pack_state_dict, round_module_, unpack_state_dict
+from baseline.contracts import feature_cache
 
 FORMAT = "pgs-anchor-model"
 MASK_LOGIT = 20.0      # decoded masks as logits: sigmoid(+-20) is unambiguously on / off
@@ -256,7 +257,7 @@ def decode_model(path: str | Path) -> DecodedModel:
     model.per_anchor["scaling"].data = torch.log(values["scaling"].clamp_min(1e-30))
     model.per_anchor["offsets"].data = values["offsets"].view(N, K, 3).clone()
     model.fixed_values = values
-    if hasattr(model.provider, "build_cache"):
+    if feature_cache(model) is not None:
         model.provider.build_cache(xyz)
     model.eval()
     return DecodedModel(cfg=cfg, model=model, header=header, decode_s=time.perf_counter() - t0)

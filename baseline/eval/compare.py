@@ -38,6 +38,7 @@ from typing import Callable, Optional
 from tqdm import tqdm
 
 from baseline.config import Config, build_config, config_hash
+from baseline.contracts import feature_cache
 
 BASELINE = "baseline"
 RECORD = "compare.json"
@@ -223,8 +224,8 @@ def _stage_decoded(spec: RunSpec, scene_path: str, record: dict, lpips_fn,
            "split": "test" if scene.test_cameras else "train (no test views)",
            "backend": resolve_backend(backend, dec.model.xyz), "device": device_name(dev),
            "has_cache": False, "fps_nocache": None, "psnr_nocache": None}
-    prov = dec.model.provider
-    if hasattr(prov, "build_cache") and hasattr(prov, "clear_cache"):
+    prov = feature_cache(dec.model)
+    if prov is not None:
         prov.clear_cache()
         ev2 = evaluate(dec.model, scene, cams, phase="decoded", backend=backend)
         prov.build_cache(dec.model.xyz)

@@ -23,9 +23,9 @@ from typing import List, Optional, Sequence
 import torch
 
 from baseline.codec.model_codec import decode_model
+from baseline.contracts import feature_cache
+from baseline.eval.compare import MODEL_FILE
 from baseline.pipeline import render_view
-
-MODEL_FILE = "model.pgs"
 
 
 @dataclass
@@ -47,19 +47,18 @@ def resolve_model_file(path: str | Path) -> Path:
 
 
 def contenders_of(label: str, model) -> List[Contender]:
-    prov = getattr(model, "provider", None)
-    if hasattr(prov, "build_cache") and hasattr(prov, "clear_cache"):
+    if feature_cache(model) is not None:
         return [Contender(label, model, True), Contender(f"{label} (no cache)", model, False)]
     return [Contender(label, model, None)]
 
 
-def _set_cache(c: Contender) -> None:
-    if c.cache is None:
+def _set_cache(model, on: Optional[bool]) -> None:
+    """Build (on) or drop (off) the model's feature cache, outside the timed frames."""
+    if on is None:
         return
-    prov = c.model.provider
-    if c.cache:
-        if prov._cache is None:
-            prov.build_cache(c.model.xyz)
+    prov = feature_cache(model)
+    if on:
+        prov.build_cache(model.xyz)
     else:
         prov.clear_cache()
 
@@ -106,16 +105,16 @@ def run_fps_bench(contenders: Sequence[Contender], cameras, background: torch.Te
     gaussians = [0.0] * n
     if warmup:      # compile kernels, fill caches, allocate: one untimed view per contender
         for c in contenders:
-            _set_cache(c)
+            _set_cache(c.model, c.cache)
             _time_views(c, cameras[:1], background, backend)
     for r in range(rounds):
         for j in range(n):
             i = (j + r) % n
-            _set_cache(contenders[i])
+            _set_cache(contenders[i].model, contenders[i].cache)
             times[i][r], gaussians[i] = _time_views(contenders[i], cameras, background, backend)
     for c in contenders:            # leave models as decoded (cache on)
-        if c.cache is not None:
-            _set_cache(Contender(c.label, c.model, True))
+        if c.cache is False:
+            _set_cache(c.model, True)
     rows = []
     for i, c in enumerate(contenders):
         ratios = [times[0][r] / times[i][r] for r in range(rounds)]

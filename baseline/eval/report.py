@@ -262,9 +262,9 @@ def speed_table(results: dict) -> Table:
              "test views (the first 5 views skipped when there are more), decoded model.",
              "Train time is the optimization loop only (summed over resumed sessions); "
              "every timing is one measurement on the machine as it was loaded at the time.",
-             "FPS of runs measured at different times do not make a speed ratio (the same file "
-             "has measured 2.9 and 5.1 FPS in two sessions): `pgs bench fps --run A --run B` "
-             "times decoded files in one process, rounds in rotated order."]
+             "FPS of runs measured at different times do not make a speed ratio (the machine's "
+             "load changes between them): `pgs bench fps --run A --run B` times decoded files "
+             "in one process, rounds in rotated order."]
     if any_cache:
         notes.append("FPS with the decoded-model cache (per-anchor predicted features computed once "
                      "at decode, inside the decode time) in 'FPS'; 'FPS w/o cache' recomputes "
