@@ -122,6 +122,18 @@ def test_info_groups_sum_to_file_size(encoded):
     gm = decode_model(encoded["path"]).model.gaussian_mask()
     assert info["masks_on"] == {"on": int((gm > 0).sum()), "total": gm.numel()}
     assert f"Gaussian masks on: {info['masks_on']['on']} of" in format_info(info)
+    # what each coded section pays for: values written and bits per value
+    header, secs = read_container(encoded["path"].read_bytes())
+    on, N, K = info["masks_on"]["on"], header["n_anchors"], header["n_offsets"]
+    attrs = {a["section"]: a for a in info["attributes"]}
+    assert set(attrs) == {a["name"] for a in header["attrs"]}
+    for a in header["attrs"]:
+        row = attrs[a["name"]]
+        want = on * a["dims"] // K if a["masked"] else N * a["dims"]
+        assert row["elements"] == want and row["bytes"] == len(secs[a["name"]])
+        assert row["bits_per_element"] == pytest.approx(8 * row["bytes"] / want)
+    assert attrs["offsets"]["masked"] and attrs["offsets"]["elements"] == 3 * on
+    assert "values coded" in format_info(info) and "(mask-on Gaussians only)" in format_info(info)
     names = [r["section"] for r in info["sections"]]
     if encoded["trainer"].cfg.model.feature_provider == "sfp":
         assert "residual" in names and "provider.grid" in names and "feat" not in names

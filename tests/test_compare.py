@@ -127,6 +127,7 @@ def test_interrupted_compare_resumes(scene, tmp_path, monkeypatch, capsys):
         assert 0 < r["psnr"] < 100 and 0 < r["ssim"] <= 1 and r["lpips"] is None
         assert r["fps"] > 0 and r["encode_s"] > 0 and r["decode_s"] > 0 and r["train_time_s"] > 0
         assert r["anchors"] == info["n_anchors"]
+        assert r["attributes"] == info["attributes"] and r["masks_on"] == info["masks_on"]
     # Predict-GS keeps a decoded-model cache: FPS with and without it, same image either way
     p = rows["predict-gs"]
     assert p["has_cache"] and p["fps_nocache"] > 0 and p["psnr_nocache"] == pytest.approx(p["psnr"])
@@ -139,14 +140,23 @@ def test_interrupted_compare_resumes(scene, tmp_path, monkeypatch, capsys):
     from baseline.cli import main
 
     calls.clear()
+    # a record written before the per-attribute counts were kept gets them from its model file,
+    # with nothing re-encoded or remeasured
+    rec = json.loads((base.dir / RECORD).read_text())
+    del rec["encode"]["attributes"], rec["encode"]["masks_on"]
+    (base.dir / RECORD).write_text(json.dumps(rec))
     assert main(["compare", str(scene), "--patch", "demo", "--out", str(out), "--no-progress",
                  *[a for v in VS for a in ("--vs", v)], *[a for s in SETS for a in ("--set", s)]]) == 0
     assert calls == []
     again = json.loads((out / "results.json").read_text())
     assert all(r["stages_run"] == [] for r in again["runs"])
+    assert again["runs"][0]["attributes"] == rows[BASELINE]["attributes"]
+    assert json.loads((base.dir / RECORD).read_text())["encode"]["encode_s"] == rec["encode"]["encode_s"]
+    printed = capsys.readouterr().out
+    assert "Coded values and bits per value" in printed
     assert [(r["method"], r["bytes"], r["psnr"]) for r in again["runs"]] == \
         [(r["method"], r["bytes"], r["psnr"]) for r in res["runs"]]
-    assert "3 run(s)" in capsys.readouterr().out
+    assert "3 run(s)" in printed
 
 
 def test_compare_refuses_other_scene(scene, tmp_path):

@@ -152,3 +152,57 @@ def test_bd_psnr_kept_when_only_bd_rate_is_impossible():
     bd = {b["method"]: b for b in compute_bd(res)}["entropy-factorized"]
     assert bd["bd_rate"] is None and "BD-rate" in bd["note"] and "overlap" in bd["note"]
     assert bd["bd_psnr"] == pytest.approx(4.5, abs=1e-9)
+
+
+def _with_counts(res):
+    """Give every run per-attribute counts: the baseline codes feat (50 dims) on 5000 anchors and
+    offsets for 20000 Gaussians; predict-gs codes a 25-dim residual and 26000 offsets whose
+    bits each are 10% fewer."""
+    for r in res["runs"]:
+        pgs = r["method"] == "predict-gs"
+        feat = {"section": "residual" if pgs else "feat", "dims": 25 if pgs else 50,
+                "masked": False, "elements": 5000 * (25 if pgs else 50)}
+        off = {"section": "offsets", "dims": 30, "masked": True,
+               "elements": 3 * (26000 if pgs else 20000)}
+        for a in (feat, off):
+            bpe = (3.6 if pgs else 4.0) if a is off else 2.0
+            a["bytes"] = int(a["elements"] * bpe / 8)
+            a["bits_per_element"] = 8 * a["bytes"] / a["elements"]
+        r["attributes"] = [feat, off]
+        r["masks_on"] = {"on": 26000 if pgs else 20000, "total": 50000}
+        r["gaussians_mean"] = 52000.0 if pgs else 40000.0
+    return res
+
+
+def _rows_of(txt, title):
+    block = txt.split(title, 1)[1].split("\n\n", 1)[0].splitlines()
+    return [ln.split() for ln in block[4:] if ln and not ln.startswith("  ")]
+
+
+def test_elements_table_separates_count_from_bits_per_value():
+    res = _with_counts(stored_results())
+    txt = format_report(res)
+    rows = _rows_of(txt, "Coded values and bits per value")
+    assert len(rows) == 2 * len(res["runs"])
+    off = {(r[0], r[1]): r for r in rows if r[2] == "offsets"}
+    # baseline: 60000 values at 4 bits; predict-gs: +30% values at -10% bits per value
+    assert off[("baseline", "0.004")][3:] == ["60000", "30000", "4.000", "ref", "ref", "40.0%"]
+    assert off[("predict-gs", "0.004")][3:] == ["78000", "35100", "3.600", "+30.0%", "-10.0%", "52.0%"]
+    feat = [r for r in rows if r[0] == "predict-gs" and r[2] == "residual"]
+    assert len(feat) == 3 and all(r[6:8] == ["-", "-"] for r in feat)   # no residual in HAC
+    # the speed table shows Gaussians per view and the change against the baseline
+    speed = txt.split("Speed against error", 1)[1]
+    assert "52000 (+30.0%)" in speed and "40000 " in speed
+
+
+def test_elements_table_skips_archived_rows_without_counts():
+    res = stored_results()
+    assert "Coded values and bits per value" not in format_report(res)
+    res = _with_counts(res)
+    for r in res["runs"]:
+        if r["method"] == "entropy-factorized":
+            r.pop("attributes")
+    txt = format_report(res)
+    rows = _rows_of(txt, "Coded values and bits per value")
+    assert {r[0] for r in rows} == {"baseline", "predict-gs"}
+    assert "not shown (records archived before these counts were kept): entropy-factorized" in txt

@@ -290,10 +290,43 @@ def file_info(path: str | Path) -> dict:
     info = {"total_bytes": total, "sections": rows, "groups": groups,
             "n_anchors": header.get("n_anchors"),
             "header": {k: header[k] for k in ("n_anchors", "n_offsets", "weight_dtype") if k in header}}
+    on = None
     if "masks" in sections:              # how many neural Gaussians the decoder keeps
         n, on = bernoulli_counts(sections["masks"], what="section 'masks'")
         info["masks_on"] = {"on": on, "total": n}
+    info["attributes"] = coded_elements(header, sections, on)
     return info
+
+
+def coded_elements(header: dict, sections: dict, masks_on: Optional[int]) -> list[dict]:
+    """What each coded attribute's bytes pay for, from the file alone.
+
+    One row per coded attribute section: ``{"section", "dims", "masked", "elements", "bytes",
+    "bits_per_element"}``. ``elements`` is the number of values the entropy coder wrote: anchors x
+    dims, or for a masked attribute (offsets) only the values of Gaussians whose mask is on
+    (masks on x dims / n_offsets). It separates the two reasons a section can grow: more coded
+    values, or more bits for each."""
+    rows = []
+    try:
+        n_anchors, n_offsets = int(header["n_anchors"]), int(header["n_offsets"])
+        attrs = list(header.get("attrs", []))
+    except (KeyError, TypeError, ValueError):
+        return rows
+    for a in attrs:
+        name, dims, masked = a.get("name"), int(a.get("dims", 0)), bool(a.get("masked", False))
+        if name not in sections:
+            continue
+        if masked:
+            if masks_on is None or n_offsets <= 0:
+                continue
+            elements = masks_on * dims // n_offsets
+        else:
+            elements = n_anchors * dims
+        nbytes = len(sections[name])
+        rows.append({"section": name, "dims": dims, "masked": masked, "elements": elements,
+                     "bytes": nbytes,
+                     "bits_per_element": 8.0 * nbytes / elements if elements else None})
+    return rows
 
 
 def format_info(info: dict) -> str:
@@ -313,4 +346,12 @@ def format_info(info: dict) -> str:
         lines.append("")
         lines.append(f"Gaussian masks on: {m['on']} of {m['total']} "
                      f"({100 * m['on'] / max(m['total'], 1):.1f}%; the neural Gaussians kept)")
+    attrs = info.get("attributes") or []
+    if attrs:
+        lines.append("")
+        lines.append(f"{'coded attribute':<22}{'values coded':>14}{'bytes':>12}{'bits/value':>12}")
+        for a in attrs:
+            bpe = "-" if a["bits_per_element"] is None else f"{a['bits_per_element']:.3f}"
+            what = " (mask-on Gaussians only)" if a["masked"] else ""
+            lines.append(f"{a['section']:<22}{a['elements']:>14}{a['bytes']:>12}{bpe:>12}{what}")
     return "\n".join(lines)

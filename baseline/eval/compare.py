@@ -196,8 +196,29 @@ def _stage_encode(spec: RunSpec, scene_path: str, record: dict) -> None:
     record["encode"] = {"bytes": st["bytes"], "encode_s": st["encode_s"], "anchors": st["anchors"],
                         "phase": trainer.phase, "sections": info["sections"],
                         "groups": info["groups"]}
+    _add_file_counts(record["encode"], info)
     record.pop("decoded", None)          # a new file: its decoded measurements are redone
     _write_record(spec, record)
+
+
+def _add_file_counts(enc: dict, info: dict) -> None:
+    """Counts read from the file (not measurements): masks on and, per coded attribute, the
+    values coded and bits per value (:func:`baseline.codec.model_codec.coded_elements`)."""
+    enc["attributes"] = info.get("attributes", [])
+    enc["masks_on"] = info.get("masks_on")
+
+
+def _fill_file_counts(spec: RunSpec, record: dict) -> bool:
+    """Records written before the counts existed get them from the model file, when it is still
+    there and is the one recorded (same size). Returns whether the record changed."""
+    from baseline.codec.model_codec import file_info
+
+    enc = record.get("encode") or {}
+    pgs = spec.dir / MODEL_FILE
+    if "attributes" in enc or not pgs.exists() or pgs.stat().st_size != enc.get("bytes"):
+        return False
+    _add_file_counts(enc, file_info(pgs))
+    return True
 
 
 def _stage_decoded(spec: RunSpec, scene_path: str, record: dict, lpips_fn,
@@ -270,6 +291,8 @@ def run_one(spec: RunSpec, scene_path: str, lpips_fn=None, lpips: Optional[str] 
         stage("encode")
         _stage_encode(spec, scene_path, record)
         done.append("encode")
+    elif _fill_file_counts(spec, record):
+        _write_record(spec, record)
     if not _evaluated(record, lpips if lpips_fn is not None else None):
         stage("decode+eval")
         _stage_decoded(spec, scene_path, record, lpips_fn, lpips)
@@ -293,6 +316,8 @@ def make_row(spec: RunSpec, res: dict, record: dict) -> dict:
         "lpips_weights": dec.get("lpips_weights"),
         "bytes": dec["bytes"], "mb": dec["bytes"] / MB,
         "sections": enc["sections"], "groups": enc["groups"],
+        # counts read from the file; absent from records written before they were kept
+        "attributes": enc.get("attributes"), "masks_on": enc.get("masks_on"),
         "iterations": res["iterations"], "train_time_s": res["train_time_s"],
         "s_per_it": res["s_per_it"], "threads": res["threads"],
         "encode_s": enc["encode_s"], "decode_s": dec["decode_s"],

@@ -9,10 +9,11 @@ Tables:
   1. quality and size of the decoded file per method and lambda;
   2. bit allocation per group, then as the paper's Table 3 (feature vs the rest) with the saving
      in percent against the baseline at the same rate point, then section by section;
-  3. speed against error (train time, s/it, encode, decode, FPS with / without the cache);
-  4. BD-rate / BD-PSNR against the baseline (PCHIP, :mod:`baseline.eval.bdrate`) for methods with
+  3. per coded attribute, the values coded and bits per value against the baseline's;
+  4. speed against error (train time, s/it, encode, decode, FPS with / without the cache);
+  5. BD-rate / BD-PSNR against the baseline (PCHIP, :mod:`baseline.eval.bdrate`) for methods with
      at least 3 rate points;
-  5. the protocol (scene, resolution, split, background, iterations, threads, backend, versions).
+  6. the protocol (scene, resolution, split, background, iterations, threads, backend, versions).
 """
 from __future__ import annotations
 
@@ -250,6 +251,48 @@ def section_tables(results: dict) -> list[Table]:
     return tables
 
 
+def _attr_rows(r: dict) -> dict:
+    return {a["section"]: a for a in (r.get("attributes") or [])}
+
+
+def elements_table(results: dict) -> Optional[Table]:
+    """Per coded attribute: values coded and bits per value, beside the baseline's same attribute.
+
+    A section grows for two reasons, more values coded (more anchors, more Gaussian masks on) or
+    more bits per value; this table separates them. None when no run recorded the counts (runs
+    archived before they were kept)."""
+    runs = [r for r in ordered_runs(results) if r.get("attributes")]
+    if not runs:
+        return None
+    rows = []
+    for r in runs:
+        p = baseline_partner(results, r)
+        pa = _attr_rows(p) if p is not None and not _is_base(results, r) else {}
+        m = r.get("masks_on") or {}
+        on = f"{100 * m['on'] / m['total']:.1f}%" if m.get("total") else "-"
+        for a in r["attributes"]:
+            ref = pa.get(a["section"])
+            bpe = a["bits_per_element"]
+            rows.append([r["method"], _lam(r), a["section"], str(a["elements"]), str(a["bytes"]),
+                         _f(bpe, 3),
+                         ("ref" if _is_base(results, r) else
+                          _pct(_change(a["elements"], ref and ref["elements"]))),
+                         ("ref" if _is_base(results, r) else
+                          _pct(_change(bpe, ref and ref["bits_per_element"]))),
+                         on if a["masked"] else ""])
+    notes = ["values = numbers the entropy coder wrote (anchors x dims; offsets only for "
+             "Gaussians whose mask is on); bits/value = section bytes x 8 / values. Changes are "
+             "against the baseline's same attribute at the same rate point ('-': it has none). "
+             "Read from each file."]
+    skipped = [f"{r['method']} {_lam(r)}" for r in ordered_runs(results) if not r.get("attributes")]
+    if skipped:
+        notes.append("not shown (records archived before these counts were kept): "
+                     + ", ".join(skipped))
+    return Table("Coded values and bits per value", ["method", "lambda", "attribute", "values",
+                 "bytes", "bits/value", "values vs baseline", "bits/value vs baseline",
+                 "masks on"], rows, notes, left=3)
+
+
 def speed_table(results: dict) -> Table:
     rows = []
     any_cache = False
@@ -257,14 +300,18 @@ def speed_table(results: dict) -> Table:
         any_cache |= bool(r["has_cache"])
         rows.append([r["method"], _lam(r), _f(r["psnr"], 3), _f(r["mb"], 4), _f(r["train_time_s"], 1),
                      _f(r["s_per_it"], 4), _f(r["encode_s"], 3), _f(r["decode_s"], 3),
-                     _f(r["fps"], 1), _f(r["fps_nocache"], 1) if r["has_cache"] else "(no cache)"])
+                     _f(r["fps"], 1), _f(r["fps_nocache"], 1) if r["has_cache"] else "(no cache)",
+                     _gaussians(results, r)])
     notes = ["FPS = 1 / mean per-view time of prefilter + Gaussian decoding + rasterization on the "
              "test views (the first 5 views skipped when there are more), decoded model.",
              "Train time is the optimization loop only (summed over resumed sessions); "
              "every timing is one measurement on the machine as it was loaded at the time.",
              "FPS of runs measured at different times do not make a speed ratio (the machine's "
              "load changes between them): `pgs bench fps --run A --run B` times decoded files "
-             "in one process, rounds in rotated order."]
+             "in one process, rounds in rotated order.",
+             "Gaussians/view: neural Gaussians kept (mask on, opacity > 0) per test view, mean; "
+             "a count, not a timing, and what rasterization time follows (change vs the "
+             "baseline at the same rate point)."]
     if any_cache:
         notes.append("FPS with the decoded-model cache (per-anchor predicted features computed once "
                      "at decode, inside the decode time) in 'FPS'; 'FPS w/o cache' recomputes "
@@ -272,7 +319,16 @@ def speed_table(results: dict) -> Table:
                      "'(no cache)': the model has none, its one FPS is in 'FPS'.")
     return Table("Speed against error", ["method", "lambda", "PSNR (dB)", "size (MB)", "train (s)",
                                          "s/it", "encode (s)", "decode (s)", "FPS",
-                                         "FPS w/o cache"], rows, notes, left=2)
+                                         "FPS w/o cache", "Gaussians/view"], rows, notes, left=2)
+
+
+def _gaussians(results: dict, r: dict) -> str:
+    g = r.get("gaussians_mean")
+    if g is None:
+        return "-"
+    p = baseline_partner(results, r)
+    ch = "" if _is_base(results, r) else f" ({_pct(_change(g, p and p.get('gaussians_mean')))})"
+    return f"{g:.0f}{ch}"
 
 
 def bd_table(results: dict) -> Table:
@@ -343,8 +399,10 @@ def protocol_lines(results: dict) -> list[tuple[str, str]]:
 
 
 def all_tables(results: dict) -> list[Table]:
+    elements = elements_table(results)
     return ([quality_table(results), groups_table(results), table3(results)]
-            + section_tables(results) + [speed_table(results), bd_table(results)])
+            + section_tables(results) + ([elements] if elements is not None else [])
+            + [speed_table(results), bd_table(results)])
 
 
 def _missing_text(results: dict) -> str:
