@@ -98,7 +98,7 @@ class TrainConfig:
     seed: int = 0
     lambda_dssim: float = 0.2
     lambda_volume: float = 0.01
-    threads: int = 0                     # 0 = all cores
+    threads: int = 0                     # 0 = all cores (at most OMP_NUM_THREADS when set)
     device: str = "auto"                 # auto (cuda when torch sees a GPU) | cpu | cuda | cuda:N
     rasterizer: str = "auto"             # auto | cpu | gsplat | reference
     hooks: list[str] = field(default_factory=lambda: ["scaffold_densify", "hac_phases"])

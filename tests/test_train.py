@@ -92,3 +92,22 @@ def test_threads_follow_the_cpu_affinity():
             "print(set_threads(0), torch.get_num_threads())")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.split() == ["1", "1"]
+
+
+@pytest.mark.parametrize("env, want", [("1", 1), ("64", None), ("", None), ("x", None)])
+def test_default_threads_follow_omp_num_threads(env, want):
+    """`train.threads = 0` with OMP_NUM_THREADS set uses at most that many threads (the printed
+    and recorded thread count is then the one used); unset, empty or invalid: every core."""
+    import os
+    import subprocess
+    import sys
+
+    from baseline.train.trainer import available_cores
+
+    code = ("import torch; from baseline.train.trainer import set_threads; "
+            "print(set_threads(0), torch.get_num_threads())")
+    e = dict(os.environ, OMP_NUM_THREADS=env)
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
+                         env=e)
+    n = want or available_cores()
+    assert out.stdout.split() == [str(n), str(n)]

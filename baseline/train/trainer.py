@@ -41,10 +41,24 @@ def available_cores() -> int:
         return os.cpu_count() or 1
 
 
-def set_threads(n: int) -> int:
-    """Use ``n`` threads (0 = all available cores) in torch and numba; never more than the cores."""
+def default_threads() -> int:
+    """Threads for ``train.threads = 0``: the available cores, capped by ``OMP_NUM_THREADS`` when
+    the environment sets it (``OMP_NUM_THREADS=1 pgs train ...`` then means one thread, as it
+    does for any OpenMP program; ``torch.set_num_threads`` would otherwise override it)."""
     cores = available_cores()
-    n = cores if n <= 0 else min(n, cores)
+    env = os.environ.get("OMP_NUM_THREADS", "").strip()
+    try:
+        cap = int(env.split(",")[0]) if env else 0
+    except ValueError:
+        cap = 0
+    return min(cores, cap) if cap > 0 else cores
+
+
+def set_threads(n: int) -> int:
+    """Use ``n`` threads (0 = :func:`default_threads`) in torch and numba; never more than the
+    cores."""
+    cores = available_cores()
+    n = default_threads() if n <= 0 else min(n, cores)
     torch.set_num_threads(n)
     try:
         import numba
