@@ -1,4 +1,6 @@
 """Config merge: defaults, patches in order, --set, errors naming key and source."""
+from pathlib import Path
+
 import pytest
 
 from baseline.config import (ConfigError, build_config, config_hash, from_toml, parse_set,
@@ -104,3 +106,18 @@ def test_every_shipped_patch_builds_and_changes_something():
         assert (to_dict(cfg, drop_meta=True) == base) == (name == "low-rate"), name
     assert build_config(["masks-x4"]).entropy.mask_lambda == pytest.approx(
         4 * default_config().entropy.mask_lambda)
+
+
+def test_hash_of_finished_runs_survives_new_options():
+    """Options added later (LATER_KEYS) stay out of the hash at their default: the demo-preset
+    HAC and Predict-GS runs archived in docs/examples/demo-sfp-grid-auto keep their folder hashes;
+    the option turned on gives a new one."""
+    from baseline.config import LATER_KEYS
+
+    base = build_config(["cpu", "demo"], ["entropy.lmbda=0.004"])
+    assert ("lr", "mask_schedule_scaled") in LATER_KEYS
+    archived = {p.name.rsplit("-", 1)[1] for p in
+                (Path(__file__).parent.parent / "docs/examples/demo-sfp-grid-auto/runs").iterdir()}
+    assert config_hash(base) in archived
+    on = build_config(["cpu", "demo", "masks-lr-scaled"], ["entropy.lmbda=0.004"])
+    assert on.lr.mask_schedule_scaled and config_hash(on) not in archived

@@ -111,3 +111,21 @@ def test_default_threads_follow_omp_num_threads(env, want):
                          env=e)
     n = want or available_cores()
     assert out.stdout.split() == [str(n), str(n)]
+
+
+def test_mask_lr_scales_with_the_schedule_only_when_asked(scene_dir, tmp_path):
+    """lr.mask_schedule_scaled multiplies the mask logits' lr (start and end) by
+    schedule_base / iterations, and no other group's; off by default."""
+    scene = load_scene(scene_dir)
+
+    def groups(*sets):
+        t = Trainer(_cfg(600, *sets), scene, tmp_path / "r", progress=False)
+        return {g["name"]: (g["lr_init"], g["lr_final"]) for g in t.optimizer.param_groups}, t
+
+    plain, t = groups()
+    scaled, _ = groups("lr.mask_schedule_scaled=true")
+    ext = t.extent
+    assert plain["mask"] == pytest.approx((0.01 * ext, 0.0001 * ext))
+    assert scaled["mask"] == pytest.approx((0.01 * ext * 50, 0.0001 * ext * 50))   # 30000 / 600
+    assert {k: v for k, v in scaled.items() if k != "mask"} == \
+        {k: v for k, v in plain.items() if k != "mask"}

@@ -127,6 +127,13 @@ class Trainer:
         except (RuntimeError, ValueError):  # a device / dtype without a fused kernel
             return torch.optim.Adam(self._param_groups(), lr=0.0, eps=1e-15)
 
+    def _mask_lr_scale(self) -> float:
+        """``lr.mask_schedule_scaled``: the mask logits' learning rate times schedule_base /
+        iterations, so that the largest distance Adam can move a logit over the run (the sum of
+        the per-step learning rates) is the paper schedule's; 1 otherwise."""
+        t = self.cfg.train
+        return t.schedule_base / t.iterations if self.cfg.lr.mask_schedule_scaled else 1.0
+
     def _param_groups(self) -> list[dict]:
         cfg, lr, ext = self.cfg, self.cfg.lr, self.extent
         m = self.model
@@ -134,8 +141,8 @@ class Trainer:
             dict(name="offsets", params=[m.per_anchor["offsets"]], lr_init=lr.offset_init * ext,
                  lr_final=lr.offset_final * ext),
             dict(name="scaling", params=[m.per_anchor["scaling"]], lr_init=lr.scaling, lr_final=lr.scaling),
-            dict(name="mask", params=[m.per_anchor["mask"]], lr_init=lr.mask_init * ext,
-                 lr_final=lr.mask_final * ext),
+            dict(name="mask", params=[m.per_anchor["mask"]], lr_init=lr.mask_init * ext * self._mask_lr_scale(),
+                 lr_final=lr.mask_final * ext * self._mask_lr_scale()),
             dict(name="mlp_opacity", params=list(m.decoder.mlp_opacity.parameters()),
                  lr_init=lr.mlp_opacity_init, lr_final=lr.mlp_opacity_final),
             dict(name="mlp_cov", params=list(m.decoder.mlp_cov.parameters()), lr_init=lr.mlp_cov,
