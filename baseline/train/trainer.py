@@ -136,13 +136,14 @@ class Trainer:
 
     def _param_groups(self) -> list[dict]:
         cfg, lr, ext = self.cfg, self.cfg.lr, self.extent
+        mask_ext = ext * self._mask_lr_scale()
         m = self.model
         groups = [
             dict(name="offsets", params=[m.per_anchor["offsets"]], lr_init=lr.offset_init * ext,
                  lr_final=lr.offset_final * ext),
             dict(name="scaling", params=[m.per_anchor["scaling"]], lr_init=lr.scaling, lr_final=lr.scaling),
-            dict(name="mask", params=[m.per_anchor["mask"]], lr_init=lr.mask_init * ext * self._mask_lr_scale(),
-                 lr_final=lr.mask_final * ext * self._mask_lr_scale()),
+            dict(name="mask", params=[m.per_anchor["mask"]], lr_init=lr.mask_init * mask_ext,
+                 lr_final=lr.mask_final * mask_ext),
             dict(name="mlp_opacity", params=list(m.decoder.mlp_opacity.parameters()),
                  lr_init=lr.mlp_opacity_init, lr_final=lr.mlp_opacity_final),
             dict(name="mlp_cov", params=list(m.decoder.mlp_cov.parameters()), lr_init=lr.mlp_cov,
