@@ -16,6 +16,7 @@ from baseline.eval.compare import (BASELINE, MODEL_FILE, RECORD, RECORD_FILES, a
 from baseline.train.trainer import CHECKPOINT_NAME, Trainer
 
 ITERS = 24
+K = 10                  # neural Gaussians per anchor (ModelConfig.n_offsets default)
 SETS = [f"train.iterations={ITERS}", "train.threads=1", "train.log_every=1000",
         "train.save_test_renders=false"]
 VS = ["entropy-factorized", "predict-gs"]
@@ -128,6 +129,9 @@ def test_interrupted_compare_resumes(scene, tmp_path, monkeypatch, capsys):
         assert r["fps"] > 0 and r["encode_s"] > 0 and r["decode_s"] > 0 and r["train_time_s"] > 0
         assert r["anchors"] == info["n_anchors"]
         assert r["attributes"] == info["attributes"] and r["masks_on"] == info["masks_on"]
+        # the Gaussians per view broken down (evaluate()); its product is the recorded mean
+        assert r["visible_anchors_mean"] * K * r["mask_on_fraction"] * r["opacity_kept_fraction"] \
+            == pytest.approx(r["gaussians_mean"])
     # Predict-GS keeps a decoded-model cache: FPS with and without it, same image either way
     p = rows["predict-gs"]
     assert p["has_cache"] and p["fps_nocache"] > 0 and p["psnr_nocache"] == pytest.approx(p["psnr"])

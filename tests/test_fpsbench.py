@@ -41,6 +41,31 @@ def files(tmp_path_factory):
     return out
 
 
+def test_evaluate_breaks_down_gaussians_per_view(files):
+    """evaluate()'s visible anchors x K x mask-on share x opacity-kept share = Gaussians per view,
+    each factor counted independently here; switching masks off moves the mask share only."""
+    from baseline.pipeline import visible_anchors
+
+    sc = load_scene(files["scene"])
+    m = decode_model(files["predict-gs"] / "model.pgs").model
+    K = m.n_offsets
+    for step in ("as decoded", "half the masks off"):
+        if step != "as decoded":
+            with torch.no_grad():
+                m.per_anchor["mask"][:, : K // 2] = -20.0
+        ev = evaluate(m, sc, sc.test_cameras, phase="decoded", backend="cpu")
+        vis = [visible_anchors(m, cam) for cam in sc.test_cameras]
+        on = sum(int((m.gaussian_mask(i) > 0).sum()) for i in vis)
+        n_vis = sum(len(i) for i in vis)
+        assert ev["visible_anchors_mean"] == pytest.approx(n_vis / len(vis))
+        assert ev["mask_on_fraction"] == pytest.approx(on / (n_vis * K))
+        assert ev["opacity_kept_fraction"] == pytest.approx(ev["gaussians_mean"] * len(vis) / on)
+        assert (ev["visible_anchors_mean"] * K * ev["mask_on_fraction"]
+                * ev["opacity_kept_fraction"]) == pytest.approx(ev["gaussians_mean"])
+        assert 0 < ev["opacity_kept_fraction"] <= 1
+    assert ev["mask_on_fraction"] <= 0.5 + 1e-9
+
+
 def test_bench_rows_contenders_and_counts(files):
     res = bench_files([str(files["baseline"]), str(files["predict-gs"] / "model.pgs")], rounds=2,
                       threads=1)

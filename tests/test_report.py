@@ -206,3 +206,27 @@ def test_elements_table_skips_archived_rows_without_counts():
     rows = _rows_of(txt, "Coded values and bits per value")
     assert {r[0] for r in rows} == {"baseline", "predict-gs"}
     assert "not shown (records archived before these counts were kept): entropy-factorized" in txt
+
+
+def test_alive_table_splits_gaussians_per_view():
+    """Visible anchors, mask-on share and opacity-kept share beside the baseline's; rows without
+    the breakdown (archived before it was kept) are named; no table when no row has it."""
+    res = _with_counts(stored_results())
+    assert "Where the Gaussians per view come from" not in format_report(res)
+    for r in res["runs"]:
+        if r["method"] == "entropy-factorized":
+            continue
+        pgs = r["method"] == "predict-gs"
+        # 50000 visible x K = 10 x mask-on share x 0.2 kept = the stored 40000 / 52000 per view
+        r["visible_anchors_mean"] = 50000.0
+        r["mask_on_fraction"] = 0.52 if pgs else 0.40
+        r["opacity_kept_fraction"] = 0.20
+    txt = format_report(res)
+    rows = _rows_of(txt, "Where the Gaussians per view come from")
+    by = {(r[0], r[1]): r for r in rows}
+    assert {r[0] for r in rows} == {"baseline", "predict-gs"}
+    assert by[("baseline", "0.004")][2:] == ["50000", "40.0%", "20.0%", "40000"]
+    assert by[("predict-gs", "0.004")][2:] == ["50000", "(+0.0%)", "52.0%", "(+30.0%)", "20.0%",
+                                              "(+0.0%)", "52000", "(+30.0%)"]
+    assert ("not shown (records archived before this breakdown was kept): entropy-factorized"
+            in txt)

@@ -40,6 +40,9 @@ from tqdm import tqdm
 from baseline.config import Config, build_config, config_hash
 from baseline.contracts import feature_cache
 
+# evaluate()'s breakdown of the Gaussians per view (baseline/eval/evaluate.py alive_breakdown)
+ALIVE_KEYS = ("visible_anchors_mean", "mask_on_fraction", "opacity_kept_fraction")
+
 BASELINE = "baseline"
 RECORD = "compare.json"
 MODEL_FILE = "model.pgs"
@@ -242,6 +245,7 @@ def _stage_decoded(spec: RunSpec, scene_path: str, record: dict, lpips_fn,
            "ssim": ev["ssim"], "lpips": ev["lpips"], "fps": ev["fps"], "n_views": ev["n_views"],
            "lpips_weights": lpips if lpips_fn is not None else None,
            "gaussians_mean": ev["gaussians_mean"], "anchors": ev["anchors"],
+           **{k: ev[k] for k in ALIVE_KEYS},
            "split": "test" if scene.test_cameras else "train (no test views)",
            "backend": resolve_backend(backend, dec.model.xyz), "device": device_name(dev),
            "has_cache": False, "fps_nocache": None, "psnr_nocache": None}
@@ -325,6 +329,8 @@ def make_row(spec: RunSpec, res: dict, record: dict) -> dict:
         "psnr_nocache": dec["psnr_nocache"],
         "anchors": dec["anchors"], "anchors_trained": res["anchors"],
         "gaussians_mean": dec["gaussians_mean"], "n_views": dec["n_views"], "split": dec["split"],
+        # where the Gaussians per view come from; absent from records written before they were kept
+        **{k: dec.get(k) for k in ALIVE_KEYS},
         "backend": dec["backend"], "phase_at_encode": enc["phase"],
         # runs recorded before device support trained on the CPU (the only device then)
         "device": res.get("device", "cpu"),

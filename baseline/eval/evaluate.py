@@ -13,6 +13,18 @@ from baseline.eval.metrics import psnr, ssim, to_uint8
 from baseline.pipeline import render_view
 
 
+def alive_breakdown(visible: int, mask_on: int, kept: int, views: int, k: int) -> dict:
+    """Where the Gaussians per view come from, summed over ``views``: ``visible_anchors_mean``
+    (anchors in the view frustum, per view), ``mask_on_fraction`` (of their ``k`` candidate
+    Gaussians each, those whose mask is on) and ``opacity_kept_fraction`` (of those, the ones
+    with opacity > 0, i.e. rasterized), so that kept per view = visible x k x mask_on x opacity_kept.
+    """
+    cand = visible * k
+    return {"visible_anchors_mean": visible / views if views else 0.0,
+            "mask_on_fraction": mask_on / cand if cand else None,
+            "opacity_kept_fraction": kept / mask_on if mask_on else None}
+
+
 @torch.no_grad()
 def evaluate(model, scene, cameras, *, phase: str, entropy=None, backend: str = "auto",
              quantized_xyz: Optional[torch.Tensor] = None, render_dir: Optional[Path] = None,
@@ -26,6 +38,7 @@ def evaluate(model, scene, cameras, *, phase: str, entropy=None, backend: str = 
     bg = scene.background.float().to(model.xyz.device)
     sync = (torch.cuda.synchronize if model.xyz.is_cuda else (lambda *a: None))
     ps, ss, lp, times, counts = [], [], [], [], []
+    n_vis = n_on = 0                     # visible anchors, mask-on Gaussians among their candidates
     for i, cam in enumerate(cameras):
         t0 = time.perf_counter()
         res = render_view(model, cam, bg, phase=phase, training=False, entropy=entropy,
@@ -34,6 +47,9 @@ def evaluate(model, scene, cameras, *, phase: str, entropy=None, backend: str = 
         sync()                           # CUDA work is asynchronous: time it to the end
         times.append(time.perf_counter() - t0)
         counts.append(int(res.gaussians.means.shape[0]))
+        vis = torch.nonzero(res.gaussians.visible).squeeze(1)   # after the timing: not part of it
+        n_vis += len(vis)
+        n_on += int((model.gaussian_mask(vis) > 0).sum())
         a = to_uint8(img)
         b = to_uint8(scene.image(cam))
         ps.append(psnr(a, b))
@@ -53,5 +69,6 @@ def evaluate(model, scene, cameras, *, phase: str, entropy=None, backend: str = 
         "n_views": len(cameras),
         "gaussians_mean": float(np.mean(counts)) if counts else 0.0,
         "anchors": int(model.n_anchors),
+        **alive_breakdown(n_vis, n_on, int(sum(counts)), len(cameras), model.n_offsets),
     }
     return out

@@ -322,6 +322,44 @@ def speed_table(results: dict) -> Table:
                                          "FPS w/o cache", "Gaussians/view"], rows, notes, left=2)
 
 
+def alive_table(results: dict) -> Optional[Table]:
+    """Where the Gaussians per view come from: visible anchors x K candidates x the share whose
+    mask is on x the share of those with opacity > 0. Two methods can keep different numbers of
+    Gaussians (and so render at different speeds) for either reason. None when no run recorded
+    the breakdown (runs archived before it was kept)."""
+    runs = [r for r in ordered_runs(results) if r.get("mask_on_fraction") is not None]
+    if not runs:
+        return None
+    rows = []
+    for r in runs:
+        p = baseline_partner(results, r)
+        base = _is_base(results, r)
+
+        def cell(key: str, fmt) -> str:
+            v = r.get(key)
+            if v is None:
+                return "-"
+            ch = "" if base else f" ({_pct(_change(v, p and p.get(key)))})"
+            return fmt(v) + ch
+
+        rows.append([r["method"], _lam(r), cell("visible_anchors_mean", lambda v: f"{v:.0f}"),
+                     cell("mask_on_fraction", lambda v: f"{100 * v:.1f}%"),
+                     cell("opacity_kept_fraction", lambda v: f"{100 * v:.1f}%"),
+                     cell("gaussians_mean", lambda v: f"{v:.0f}")])
+    notes = ["Per test view of the decoded model: anchors in the view, the share of their "
+             "candidate Gaussians whose mask is on, the share of those with opacity > 0 "
+             "(rasterized); Gaussians/view = visible x K x both shares. In brackets: the change vs "
+             "the baseline at the same rate point."]
+    skipped = [f"{r['method']} {_lam(r)}" for r in ordered_runs(results)
+               if r.get("mask_on_fraction") is None]
+    if skipped:
+        notes.append("not shown (records archived before this breakdown was kept): "
+                     + ", ".join(skipped))
+    return Table("Where the Gaussians per view come from", ["method", "lambda",
+                 "visible anchors/view", "masks on", "opacity > 0 of mask-on", "Gaussians/view"],
+                 rows, notes, left=2)
+
+
 def _gaussians(results: dict, r: dict) -> str:
     g = r.get("gaussians_mean")
     if g is None:
@@ -399,10 +437,11 @@ def protocol_lines(results: dict) -> list[tuple[str, str]]:
 
 
 def all_tables(results: dict) -> list[Table]:
-    elements = elements_table(results)
+    elements, alive = elements_table(results), alive_table(results)
     return ([quality_table(results), groups_table(results), table3(results)]
             + section_tables(results) + ([elements] if elements is not None else [])
-            + [speed_table(results), bd_table(results)])
+            + [speed_table(results)] + ([alive] if alive is not None else [])
+            + [bd_table(results)])
 
 
 def _missing_text(results: dict) -> str:
