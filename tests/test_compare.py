@@ -16,7 +16,6 @@ from baseline.eval.compare import (BASELINE, MODEL_FILE, RECORD, RECORD_FILES, a
 from baseline.train.trainer import CHECKPOINT_NAME, Trainer
 
 ITERS = 24
-K = 10                  # neural Gaussians per anchor (ModelConfig.n_offsets default)
 SETS = [f"train.iterations={ITERS}", "train.threads=1", "train.log_every=1000",
         "train.save_test_renders=false"]
 VS = ["entropy-factorized", "predict-gs"]
@@ -130,7 +129,8 @@ def test_interrupted_compare_resumes(scene, tmp_path, monkeypatch, capsys):
         assert r["anchors"] == info["n_anchors"]
         assert r["attributes"] == info["attributes"] and r["masks_on"] == info["masks_on"]
         # the Gaussians per view broken down (evaluate()); its product is the recorded mean
-        assert r["visible_anchors_mean"] * K * r["mask_on_fraction"] * r["opacity_kept_fraction"] \
+        k = info["header"]["n_offsets"]
+        assert r["visible_anchors_mean"] * k * r["mask_on_fraction"] * r["opacity_kept_fraction"] \
             == pytest.approx(r["gaussians_mean"])
     # Predict-GS keeps a decoded-model cache: FPS with and without it, same image either way
     p = rows["predict-gs"]

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import Optional
+from typing import Callable, Optional
 
 from baseline.eval.bdrate import BDError, bd_psnr, bd_rate
 from baseline.fileio import write_text_atomic
@@ -284,10 +284,7 @@ def elements_table(results: dict) -> Optional[Table]:
              "Gaussians whose mask is on); bits/value = section bytes x 8 / values. Changes are "
              "against the baseline's same attribute at the same rate point ('-': it has none). "
              "Read from each file."]
-    skipped = [f"{r['method']} {_lam(r)}" for r in ordered_runs(results) if not r.get("attributes")]
-    if skipped:
-        notes.append("not shown (records archived before these counts were kept): "
-                     + ", ".join(skipped))
+    notes += _not_shown(results, lambda r: bool(r.get("attributes")), "these counts were")
     return Table("Coded values and bits per value", ["method", "lambda", "attribute", "values",
                  "bytes", "bits/value", "values vs baseline", "bits/value vs baseline",
                  "masks on"], rows, notes, left=3)
@@ -301,7 +298,7 @@ def speed_table(results: dict) -> Table:
         rows.append([r["method"], _lam(r), _f(r["psnr"], 3), _f(r["mb"], 4), _f(r["train_time_s"], 1),
                      _f(r["s_per_it"], 4), _f(r["encode_s"], 3), _f(r["decode_s"], 3),
                      _f(r["fps"], 1), _f(r["fps_nocache"], 1) if r["has_cache"] else "(no cache)",
-                     _gaussians(results, r)])
+                     _with_change(results, r, "gaussians_mean", _count)])
     notes = ["FPS = 1 / mean per-view time of prefilter + Gaussian decoding + rasterization on the "
              "test views (the first 5 views skipped when there are more), decoded model.",
              "Train time is the optimization loop only (summed over resumed sessions); "
@@ -330,43 +327,46 @@ def alive_table(results: dict) -> Optional[Table]:
     runs = [r for r in ordered_runs(results) if r.get("mask_on_fraction") is not None]
     if not runs:
         return None
-    rows = []
-    for r in runs:
-        p = baseline_partner(results, r)
-        base = _is_base(results, r)
-
-        def cell(key: str, fmt) -> str:
-            v = r.get(key)
-            if v is None:
-                return "-"
-            ch = "" if base else f" ({_pct(_change(v, p and p.get(key)))})"
-            return fmt(v) + ch
-
-        rows.append([r["method"], _lam(r), cell("visible_anchors_mean", lambda v: f"{v:.0f}"),
-                     cell("mask_on_fraction", lambda v: f"{100 * v:.1f}%"),
-                     cell("opacity_kept_fraction", lambda v: f"{100 * v:.1f}%"),
-                     cell("gaussians_mean", lambda v: f"{v:.0f}")])
+    rows = [[r["method"], _lam(r), _with_change(results, r, "visible_anchors_mean", _count),
+             _with_change(results, r, "mask_on_fraction", _share),
+             _with_change(results, r, "opacity_kept_fraction", _share),
+             _with_change(results, r, "gaussians_mean", _count)] for r in runs]
     notes = ["Per test view of the decoded model: anchors in the view, the share of their "
              "candidate Gaussians whose mask is on, the share of those with opacity > 0 "
              "(rasterized); Gaussians/view = visible x K x both shares. In brackets: the change vs "
              "the baseline at the same rate point."]
-    skipped = [f"{r['method']} {_lam(r)}" for r in ordered_runs(results)
-               if r.get("mask_on_fraction") is None]
-    if skipped:
-        notes.append("not shown (records archived before this breakdown was kept): "
-                     + ", ".join(skipped))
+    notes += _not_shown(results, lambda r: r.get("mask_on_fraction") is not None,
+                        "this breakdown was")
     return Table("Where the Gaussians per view come from", ["method", "lambda",
                  "visible anchors/view", "masks on", "opacity > 0 of mask-on", "Gaussians/view"],
                  rows, notes, left=2)
 
 
-def _gaussians(results: dict, r: dict) -> str:
-    g = r.get("gaussians_mean")
-    if g is None:
+def _with_change(results: dict, r: dict, key: str, fmt: Callable[[float], str]) -> str:
+    """``r[key]`` formatted, with its change vs the baseline at the same rate point in brackets
+    (none on the baseline's own row); '-' when the record has no such value."""
+    v = r.get(key)
+    if v is None:
         return "-"
+    if _is_base(results, r):
+        return fmt(v)
     p = baseline_partner(results, r)
-    ch = "" if _is_base(results, r) else f" ({_pct(_change(g, p and p.get('gaussians_mean')))})"
-    return f"{g:.0f}{ch}"
+    return f"{fmt(v)} ({_pct(_change(v, p and p.get(key)))})"
+
+
+def _count(v: float) -> str:
+    return f"{v:.0f}"
+
+
+def _share(v: float) -> str:
+    return f"{100 * v:.1f}%"
+
+
+def _not_shown(results: dict, kept: Callable[[dict], bool], what: str) -> list[str]:
+    """A note naming the runs a table leaves out: records archived before ``what`` kept."""
+    skipped = [f"{r['method']} {_lam(r)}" for r in ordered_runs(results) if not kept(r)]
+    return ([f"not shown (records archived before {what} kept): " + ", ".join(skipped)]
+            if skipped else [])
 
 
 def bd_table(results: dict) -> Table:
