@@ -236,7 +236,8 @@ def cmd_compare(args) -> int:
         run_compare(args.scene, args.out, vs=args.vs, lambdas=args.lambdas,
                     common_patches=args.patch, sets=sets, lpips_weights=args.lpips_weights,
                     progress=not args.no_progress, plots=not args.no_plots, only=args.only,
-                    remeasure=args.remeasure, report_only=args.report_only)
+                    remeasure=args.remeasure, report_only=args.report_only,
+                    reference=args.reference)
     except KeyboardInterrupt:
         print(f"\ninterrupted: finished stages are kept in {args.out}; run the same command "
               f"again to resume", file=sys.stderr)
@@ -374,6 +375,10 @@ def main(argv=None) -> int:
                         "included) and list the missing ones")
     p.add_argument("--remeasure", action="store_true",
                    help="redo encode and decode+eval of trained runs (retake times and FPS)")
+    p.add_argument("--reference", metavar="P1[+P2...]", default=None,
+                   help="an uncompressed run on the same protocol to measure every run against "
+                        "(e.g. 'scaffold'): PSNR change and 'x smaller' than its float32 model; "
+                        "'--only reference' trains just it")
     p.add_argument("--archive", metavar="DIR", default=None,
                    help="afterwards, copy the finished runs' records and the report to DIR "
                         "(no checkpoints or model files; copy them back into an --out folder "

@@ -268,3 +268,51 @@ def test_archived_records_are_reported_without_retraining(scene, tmp_path):
     # a model file missing beside its checkpoint is re-encoded, not taken from the record
     (specs[1].dir / MODEL_FILE).unlink()
     assert not is_finished(specs[1])
+
+
+def test_reference_measures_every_run_against_the_uncompressed_model(scene, tmp_path):
+    """--reference scaffold: the uncompressed run shares the protocol, is trained once (alone with
+    --only reference), its float32 size counts every tensor the renderer reads (independent count
+    below), each run's 'x smaller' and PSNR change come from it, and archived records keep it."""
+    from baseline.eval.compare import REFERENCE, parse_reference, plan_reference
+    from baseline.eval.report import format_report, reference_table
+    from baseline.run import load_run
+
+    with pytest.raises(ValueError, match="not an uncompressed reference"):
+        plan_reference(tmp_path, parse_reference("predict-gs"), ["demo"], SETS)
+    out = tmp_path / "cmp"
+    kw = dict(common_patches=["demo"], sets=SETS, progress=False, plots=False, echo=False)
+    alone = run_compare(scene, out, vs=["predict-gs"], reference="scaffold", only=[REFERENCE], **kw)
+    ref = alone["reference"]
+    assert alone["runs"] == [] and ref["stages_run"] == ["train", "float32 size"]
+    spec = plan_reference(out, parse_reference("scaffold"), ["demo"], SETS)
+    assert ref["run_dir"] == str(spec.dir) and spec.cfg.train.iterations == ITERS
+    assert spec.cfg.train.hooks == ["scaffold_densify"]
+    trainer, _ = load_run(spec.dir, device="cpu")
+    m = trainer.model
+    per_anchor = m.n_anchors * (3 + m.provider.feature_dim + m.n_offsets * 3 + 6)
+    assert ref["float32_bytes"] == 4 * (per_anchor + sum(p.numel() for p in m.decoder.parameters()))
+    assert ref["anchors"] == m.n_anchors
+    assert ref["psnr"] == json.loads((spec.dir / "results.json").read_text())["test"]["psnr"]
+
+    full = run_compare(scene, out, vs=["predict-gs"], reference="scaffold", **kw)
+    assert full["reference"]["stages_run"] == []                     # trained once
+    table = reference_table(full)
+    assert len(table.rows) == 3 and table.rows[0][3] == "ref"
+    for row, r in zip(table.rows[1:], full["runs"]):
+        assert row[3] == f"{r['psnr'] - ref['psnr']:+.3f}"
+        assert row[6] == f"{ref['float32_bytes'] / r['bytes']:.1f}x"
+    text = format_report(full)
+    assert "Against the uncompressed reference" in text and "scaffold = common patches" in text
+    assert reference_table({**full, "reference": None}) is None
+
+    arch = tmp_path / "archive"
+    kept = archive_records(out, arch)
+    assert spec.dir.name in [p.name for p in kept]
+    part = run_compare(scene, arch, vs=["predict-gs"], reference="scaffold", report_only=True, **kw)
+    assert part["reference"]["records_only"] and part["reference"]["psnr"] == ref["psnr"]
+    assert part["complete"]
+    # a comparison whose reference is not trained yet lists it as missing under --report-only
+    empty = run_compare(scene, arch, vs=["predict-gs"], reference="scaffold+weights-fp16",
+                        report_only=True, **kw)
+    assert empty["reference"] is None and "reference (scaffold+weights-fp16)" in empty["missing"]

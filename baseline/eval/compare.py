@@ -112,6 +112,102 @@ def plan_runs(out: str | Path, methods: list[Method], lambdas: Optional[list[flo
     return specs
 
 
+# ------------------------------------------------------------------ the uncompressed reference
+REFERENCE = "reference"
+REFERENCE_PREFIX = "reference-"
+
+
+def parse_reference(ref: Optional[str]) -> Optional[Method]:
+    """``"scaffold"`` -> the uncompressed reference method (patches on top of the common ones)."""
+    if ref is None:
+        return None
+    parts = tuple(p.strip() for p in ref.split("+") if p.strip())
+    if not parts:
+        raise ValueError(f"--reference '{ref}': expected one or more patch names joined by '+'")
+    return Method("+".join(Path(p).stem if p.endswith(".toml") else p for p in parts), parts)
+
+
+def plan_reference(out: str | Path, method: Method, common_patches: list[str] = (),
+                   sets: list[str] = ()) -> RunSpec:
+    """The reference run: the common patches and ``--set`` values plus the reference's patches,
+    so it shares the comparison's scene, resolution, split and schedule. It must train without
+    quantization or a rate loss (no ``hac_phases`` hook), or it is no uncompressed reference."""
+    cfg = build_config(list(common_patches) + list(method.patches), list(sets))
+    if "hac_phases" in cfg.train.hooks:
+        raise ValueError(f"--reference {method.name}: its training runs the 'hac_phases' hook "
+                         f"(quantization and the rate loss), so it is not an uncompressed "
+                         f"reference; use e.g. --reference scaffold")
+    h = config_hash(cfg)
+    return RunSpec(method, float(cfg.entropy.lmbda), cfg, h,
+                   Path(out) / "runs" / f"{REFERENCE_PREFIX}{_safe(method.name)}-{h}")
+
+
+def float32_bytes(model_state: dict) -> int:
+    """Bytes of every floating tensor the renderer reads, at 4 bytes a value: per-anchor
+    positions, features (or whatever the feature provider keeps), offsets, scalings, and the
+    networks. The Gaussian masks (``per_anchor.mask``) are not counted: an uncompressed run never
+    trains them (all on) and Scaffold-GS has none. This is the size of the model as float32
+    arrays, the yardstick "x times smaller" is measured against."""
+    return int(sum(4 * v.numel() for k, v in model_state.items()
+                   if v.is_floating_point() and k != "per_anchor.mask"))
+
+
+def _stage_reference(spec: RunSpec, record: dict) -> None:
+    import torch
+
+    from baseline.run import CHECKPOINT_NAME
+
+    ckpt = spec.dir / CHECKPOINT_NAME
+    try:
+        state = torch.load(ckpt, map_location="cpu", weights_only=False)["model"]
+    except Exception as e:
+        raise ValueError(f"cannot read the reference's checkpoint {ckpt}: {e}") from None
+    n = state["per_anchor.xyz"].shape[0]
+    record["reference"] = {"float32_bytes": float32_bytes(state), "anchors": int(n)}
+    _write_record(spec, record)
+
+
+def reference_finished(spec: RunSpec) -> bool:
+    record = _read_json(spec.dir / RECORD)
+    return (_trained(spec) is not None and record.get("config_hash") == spec.hash
+            and "reference" in record)
+
+
+def run_reference(spec: RunSpec, scene_path: str, progress: bool = True,
+                  on_stage: Optional[Callable[[str], None]] = None) -> dict:
+    """Train the reference (if not yet), measure its float32 size; return its row. Its quality
+    is the trained model's on the test views (nothing is coded)."""
+    from baseline.run import train_run
+
+    stage = on_stage or (lambda s: None)
+    _check_scene(spec, scene_path)
+    res = _trained(spec)
+    done = []
+    if res is None:
+        stage("train")
+        res = train_run(scene_path, spec.dir, spec.cfg, resume=True, progress=progress,
+                        evaluate_after=True)
+        done.append("train")
+    record = _read_json(spec.dir / RECORD)
+    if record.get("config_hash") != spec.hash or done or "reference" not in record:
+        record = {"method": spec.method.name, "method_patches": list(spec.method.patches),
+                  "config_hash": spec.hash, "scene": scene_path}
+        stage("float32 size")
+        _stage_reference(spec, record)
+        done.append("float32 size")
+    ref, test = record["reference"], res["test"]
+    return {"method": spec.method.name, "method_patches": list(spec.method.patches),
+            "patches": list(spec.cfg.patches), "run_dir": str(spec.dir),
+            "config_hash": spec.hash, "psnr": test["psnr"], "ssim": test["ssim"],
+            "lpips": test.get("lpips"), "float32_bytes": ref["float32_bytes"],
+            "mb": ref["float32_bytes"] / MB, "anchors": ref["anchors"],
+            "gaussians_mean": test.get("gaussians_mean"), "fps": test.get("fps"),
+            "iterations": res["iterations"], "train_time_s": res["train_time_s"],
+            "s_per_it": res["s_per_it"], "threads": res["threads"],
+            "device": res.get("device", "cpu"), "protocol": res.get("protocol", {}),
+            "records_only": records_only(spec), "stages_run": done}
+
+
 # ----------------------------------------------------------------------------------- stages
 def _read_json(path: Path) -> dict:
     if not path.exists():
@@ -356,7 +452,8 @@ def archive_records(out: str | Path, dest: str | Path) -> list[Path]:
     for run in sorted((out / "runs").glob("*")) if (out / "runs").is_dir() else []:
         rec = _read_json(run / RECORD)
         res = _read_json(run / "results.json")
-        if not (rec.get("encode") and rec.get("decoded") and "test" in res):
+        if not ("test" in res and (rec.get("encode") and rec.get("decoded")
+                                   or "reference" in rec)):
             continue                       # not finished: nothing to keep yet
         (dest / "runs" / run.name).mkdir(parents=True, exist_ok=True)
         for name in RECORD_FILES:
@@ -390,7 +487,7 @@ def run_compare(scene: str | Path, out: str | Path, vs: list[str] = (),
                 sets: list[str] = (), lpips_weights: Optional[str] = None,
                 progress: bool = True, plots: bool = True, echo: bool = True,
                 only: Optional[list[str]] = None, remeasure: bool = False,
-                report_only: bool = False) -> dict:
+                report_only: bool = False, reference: Optional[str] = None) -> dict:
     """Run (or resume) a comparison; write ``out/results.json``, ``out/report.md`` and plots.
 
     ``only``: bring only the runs of these methods (names as in the report: ``baseline``, a
@@ -402,6 +499,10 @@ def run_compare(scene: str | Path, out: str | Path, vs: list[str] = (),
     ``report_only``: train and measure nothing; report the finished runs (archived records
     included) and list the others as missing (``results["missing"]``). For a long comparison
     that spans sessions or machines: its report so far, without starting the runs still to do.
+    ``reference``: patches (joined by '+') of an uncompressed run on the same protocol, e.g.
+    ``"scaffold"``: trained once (``--only reference`` trains just it), measured as the trained
+    model on the test views plus its float32 size (:func:`float32_bytes`); the report then gives
+    every run's size ratio and PSNR change against it.
     """
     from baseline.eval.metrics import load_lpips
     from baseline.eval.report import format_report, write_report
@@ -417,8 +518,11 @@ def run_compare(scene: str | Path, out: str | Path, vs: list[str] = (),
     if lambdas is not None and len(set(lambdas)) != len(lambdas):
         raise ValueError(f"--lambda lists a value twice: {lambdas}")
     specs = plan_runs(out, methods, lambdas, list(common_patches), list(sets))
+    ref_method = parse_reference(reference)
+    ref_spec = (plan_reference(out, ref_method, list(common_patches), list(sets))
+                if ref_method is not None else None)
     if only:
-        names = [m.name for m in methods]
+        names = [m.name for m in methods] + ([REFERENCE] if ref_spec is not None else [])
         unknown = [o for o in only if o not in names]
         if unknown:
             raise ValueError(f"--only {', '.join(unknown)}: not a method of this comparison "
@@ -439,6 +543,9 @@ def run_compare(scene: str | Path, out: str | Path, vs: list[str] = (),
         "lambdas": None if lambdas is None else [float(x) for x in lambdas],
         "lpips": f"measured with {lp_id}" if lpips_fn is not None else lpips_reason,
         "only": list(only) if only else None,
+        "reference": None,
+        "reference_method": (None if ref_method is None else
+                             {"name": ref_method.name, "patches": list(ref_method.patches)}),
         "versions": versions(),
         "complete": False,
         "missing": [],
@@ -447,16 +554,35 @@ def run_compare(scene: str | Path, out: str | Path, vs: list[str] = (),
     finished = [is_finished(s, lp_id) for s in specs]          # reads each run's records once
     n_done = 0 if remeasure else sum(finished)
     if echo:
-        print(f"compare: {len(methods)} method(s) x {len(specs) // len(methods)} rate point(s) = "
+        print(f"compare: {len(methods)} method(s) x {len(specs) // max(1, len(methods))} "
+              f"rate point(s) = "
               f"{len(specs)} run(s) on {scene_path}; {n_done} already finished in {out / 'runs'}")
     if report_only:
         results["missing"] = [s.label for s, done in zip(specs, finished) if not done]
         specs = [s for s, done in zip(specs, finished) if done]
         if echo and results["missing"]:
             print("--report-only: not run yet (left alone): " + ", ".join(results["missing"]))
-    if n_done < len(specs):
-        _warm_up_rasterizer(specs)
+    ref_done = ref_spec is not None and reference_finished(ref_spec)
+    # the reference is trained when asked for (no --only, or --only reference); once finished it
+    # is reported by every invocation
+    ref_todo = ref_spec is not None and not ref_done and not report_only and (
+        not only or REFERENCE in only)
+    if ref_spec is not None and not ref_done and not ref_todo and report_only:
+        results["missing"].append(f"{REFERENCE} ({ref_method.name})")
+    if n_done < len(specs) or ref_todo:
+        _warm_up_rasterizer(specs + ([ref_spec] if ref_todo else []))
     t0 = time.perf_counter()
+    if ref_done or ref_todo:
+        head = f"[{REFERENCE}] {ref_method.name} (uncompressed)"
+        row = run_reference(ref_spec, scene_path, progress=progress,
+                            on_stage=(lambda s: tqdm.write(f"{head}: {s} ({ref_spec.dir})"))
+                            if echo else None)
+        results["reference"] = row
+        write_json_atomic(out / "results.json", results)
+        if echo:
+            what = ("measured now: " + ", ".join(row["stages_run"]) if row["stages_run"]
+                    else "reused (finished earlier)")
+            print(f"{head}: PSNR {row['psnr']:.3f} dB  float32 {row['mb']:.4f} MB  [{what}]")
     bar = tqdm(total=len(specs), desc="compare", unit="run", disable=not progress,
                dynamic_ncols=True, position=0)
     for i, spec in enumerate(specs):

@@ -61,6 +61,10 @@ def plot_rd(results: dict, path: Path) -> Path:
         for x, y, lams in spots.values():
             ax.annotate("λ=" + ", ".join(lams), (x, y), textcoords="offset points",
                         xytext=(5, -11), fontsize=7.5, color=c)
+    ref = results.get("reference")
+    if ref:
+        ax.axhline(ref["psnr"], color="0.35", ls="--", lw=1.2,
+                   label=f"uncompressed {ref['method']} ({ref['mb']:.3g} MB as float32)")
     ax.set_xlabel("size of the .pgs file (MB = 2^20 bytes)")
     ax.set_ylabel("PSNR on the test views (dB)")
     ax.set_title(f"Rate-distortion: {Path(results.get('scene', '')).name}")

@@ -6,7 +6,8 @@ Nothing here measures anything: every figure is a stored measurement or arithmet
 (ratios to the baseline, Bjontegaard deltas).
 
 Tables:
-  1. quality and size of the decoded file per method and lambda;
+  1. quality and size of the decoded file per method and lambda, and against the uncompressed
+     reference when the comparison has one (``--reference``);
   2. bit allocation per group, then as the paper's Table 3 (feature vs the rest) with the saving
      in percent against the baseline at the same rate point, then section by section;
   3. per coded attribute, the values coded and bits per value against the baseline's;
@@ -342,6 +343,32 @@ def alive_table(results: dict) -> Optional[Table]:
                  rows, notes, left=2)
 
 
+def reference_table(results: dict) -> Optional[Table]:
+    """Every run against the uncompressed reference (``pgs compare --reference``): PSNR change
+    and how many times smaller its file is than the reference's float32 model. None without one."""
+    ref = results.get("reference")
+    if not ref:
+        return None
+    rows = [[f"reference: {ref['method']}", "-", _f(ref["psnr"], 3), "ref", _f(ref["ssim"], 4),
+             _f(ref["mb"], 4), "1x"]]
+    for r in ordered_runs(results):
+        rows.append([r["method"], _lam(r), _f(r["psnr"], 3), f"{r['psnr'] - ref['psnr']:+.3f}",
+                     _f(r["ssim"], 4), _f(r["mb"], 4), f"{ref['float32_bytes'] / r['bytes']:.1f}x"])
+    notes = [f"Reference: the uncompressed run `{' + '.join(ref['patches'])}` on the same "
+             f"protocol ({ref['iterations']} iterations, {ref['anchors']} anchors, "
+             f"{ref['float32_bytes']} bytes). Its quality is the trained model's on the test "
+             f"views (nothing coded); its size counts every value the renderer reads as float32 "
+             f"(anchor positions, features, offsets, scalings, networks). 'x smaller' = that "
+             f"size / the .pgs file's size; 'vs ref' = PSNR change in dB."]
+    other = sorted({f"{r['method']} {_lam(r)}" for r in ordered_runs(results)
+                    if r["iterations"] != ref["iterations"]})
+    if other:
+        notes.append("trained for another number of iterations than the reference: "
+                     + ", ".join(other))
+    return Table("Against the uncompressed reference", ["method", "lambda", "PSNR (dB)",
+                 "vs ref (dB)", "SSIM", "size (MB)", "x smaller"], rows, notes, left=2)
+
+
 def _with_change(results: dict, r: dict, key: str, fmt: Callable[[float], str]) -> str:
     """``r[key]`` formatted, with its change vs the baseline at the same rate point in brackets
     (none on the baseline's own row); '-' when the record has no such value."""
@@ -424,6 +451,8 @@ def protocol_lines(results: dict) -> list[tuple[str, str]]:
         ("LPIPS", str(results.get("lpips", "unavailable"))),
         ("versions", ", ".join(f"{k} {v}" for k, v in results.get("versions", {}).items())),
     ]
+    if results.get("reference_method"):
+        items.insert(7, ("reference", _reference_line(results)))
     tv = {tuple(sorted(r.get("train_versions", {}).items())) for r in runs}
     cur = tuple(sorted(results.get("versions", {}).items()))
     if any(v and v != cur for v in tv):
@@ -436,9 +465,21 @@ def protocol_lines(results: dict) -> list[tuple[str, str]]:
     return items
 
 
+def _reference_line(results: dict) -> str:
+    """The protocol's line on the uncompressed reference (only when the comparison has one)."""
+    ref, meth = results.get("reference"), results.get("reference_method")
+    if ref:
+        return (f"{ref['method']} = common patches + {' + '.join(ref['method_patches'])}, "
+                f"uncompressed, {ref['iterations']} iterations, {ref['s_per_it']:.4f} s/it"
+                + (" (from records)" if ref.get("records_only") else ""))
+    return f"{meth['name']}: not trained yet"
+
+
 def all_tables(results: dict) -> list[Table]:
     elements, alive = elements_table(results), alive_table(results)
-    return ([quality_table(results), groups_table(results), table3(results)]
+    ref = reference_table(results)
+    return ([quality_table(results)] + ([ref] if ref is not None else [])
+            + [groups_table(results), table3(results)]
             + section_tables(results) + ([elements] if elements is not None else [])
             + [speed_table(results)] + ([alive] if alive is not None else [])
             + [bd_table(results)])
