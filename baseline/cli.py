@@ -263,7 +263,8 @@ def cmd_demo(args) -> int:
     t0 = time.perf_counter()
     try:
         run_compare(str(scene), out, vs=args.vs or ["predict-gs"], lambdas=args.lambdas,
-                    common_patches=["demo"] + args.patch, sets=args.set, progress=True, plots=True)
+                    common_patches=["demo"] + args.patch, sets=args.set, progress=True, plots=True,
+                    reference=None if args.reference == "none" else args.reference)
     except KeyboardInterrupt:
         print("\ninterrupted: run ./run.sh demo again to resume", file=sys.stderr)
         return 130
@@ -392,6 +393,9 @@ def main(argv=None) -> int:
     p.add_argument("--vs", action="append", default=[], help="contenders (default predict-gs)")
     p.add_argument("--lambda", dest="lambdas", type=float, nargs="+", default=None)
     p.add_argument("--set", action="append", default=[])
+    p.add_argument("--reference", default="scaffold", metavar="P1[+P2...]",
+                   help="the uncompressed run every method is measured against (default "
+                        "scaffold; 'none' for none)")
     p.set_defaults(fn=cmd_demo)
 
     args = ap.parse_args(argv)

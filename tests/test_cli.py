@@ -98,3 +98,19 @@ def test_bench_codec_with_a_trained_run(trained, capsys):
     assert [ln.split()[0] for ln in lines] == ["reference", "fast", "run"]
     assert all(ln.rstrip().endswith("True") for ln in lines)     # every decode exact
     assert str(run) in out
+
+
+def test_demo_measures_against_the_uncompressed_reference(tmp_path, monkeypatch):
+    """The main job compares baseline and Predict-GS with the uncompressed Scaffold-GS reference
+    by default; '--reference none' leaves it out (the comparison itself is tested in
+    test_compare.py, here only what the command asks for)."""
+    import baseline.data.synthetic as synthetic
+    import baseline.eval.compare as compare
+
+    calls = []
+    monkeypatch.setattr(synthetic, "make_scene", lambda path: None)
+    monkeypatch.setattr(compare, "run_compare", lambda *a, **kw: calls.append(kw))
+    assert main(["demo", "--out", str(tmp_path / "d")]) == 0
+    assert main(["demo", "--out", str(tmp_path / "d"), "--reference", "none"]) == 0
+    assert [c["reference"] for c in calls] == ["scaffold", None]
+    assert calls[0]["vs"] == ["predict-gs"] and calls[0]["common_patches"] == ["demo"]
