@@ -553,10 +553,11 @@ def run_compare(scene: str | Path, out: str | Path, vs: list[str] = (),
     }
     finished = [is_finished(s, lp_id) for s in specs]          # reads each run's records once
     n_done = 0 if remeasure else sum(finished)
-    if echo:
-        print(f"compare: {len(methods)} method(s) x {len(specs) // max(1, len(methods))} "
-              f"rate point(s) = "
+    if echo and methods:
+        print(f"compare: {len(methods)} method(s) x {len(specs) // len(methods)} rate point(s) = "
               f"{len(specs)} run(s) on {scene_path}; {n_done} already finished in {out / 'runs'}")
+    elif echo:
+        print(f"compare: the uncompressed reference only, on {scene_path}")
     if report_only:
         results["missing"] = [s.label for s, done in zip(specs, finished) if not done]
         specs = [s for s, done in zip(specs, finished) if done]
