@@ -70,6 +70,11 @@ class DensifyConfig:
     reference_level_skip: bool = False
     # Reference quirk: log-scaling[:, 3:] clamped to <= 0.05 at each adjustment (< 0: off).
     prune_clamp_log_scaling: float = 0.05
+    # Keep applying that clamp every update_interval after update_until, to the end of training.
+    # The reference stops with the adjustments (15k of 30k); after that nothing bounds the
+    # scale multipliers, and on the synthetic scene at 30k they grew to exp(7.5) and drew
+    # streaks across training views (see README, "late divergence"). Off by default (faithful).
+    clamp_scaling_to_end: bool = False
 
 
 @dataclass
@@ -364,7 +369,8 @@ EXECUTION_KEYS = (("train", "device"),)
 # Options added after runs were finished and archived, with the default that reproduces those
 # runs: left out of the hash while at that default, so adding an option does not orphan every
 # finished run (and its archived records) under a new hash.
-LATER_KEYS = {("lr", "mask_schedule_scaled"): False}
+LATER_KEYS = {("lr", "mask_schedule_scaled"): False,
+              ("densify", "clamp_scaling_to_end"): False}
 
 
 def config_hash(cfg: Config) -> str:

@@ -121,3 +121,5 @@ def test_hash_of_finished_runs_survives_new_options():
     assert config_hash(base) in archived
     on = build_config(["cpu", "demo", "masks-lr-scaled"], ["entropy.lmbda=0.004"])
     assert on.lr.mask_schedule_scaled and config_hash(on) not in archived
+    clamp = build_config(["cpu", "demo"], ["entropy.lmbda=0.004", "densify.clamp_scaling_to_end=true"])
+    assert ("densify", "clamp_scaling_to_end") in LATER_KEYS and config_hash(clamp) not in archived

@@ -166,3 +166,28 @@ def test_pruning_and_scaling_clamp():
     assert hook.anchor_demon.tolist() == [0.0, 10.0]     # counted anchors reset, others kept
     assert (model.per_anchor["scaling"][:, 3:] <= 0.05 + 1e-7).all()
     assert interval == max(10, cfg.train.at(cfg.densify.update_interval))
+
+
+@pytest.mark.parametrize("to_end", [False, True])
+def test_scaling_clamp_after_the_adjustments_only_when_asked(to_end):
+    """After update_until the reference stops clamping the scale multipliers (nothing adjusts
+    anchors any more); ``densify.clamp_scaling_to_end`` keeps the clamp every update_interval to
+    the end of training, without growing or pruning anything."""
+    cfg = _cfg(**{"model.voxel_size": 1.0, "model.n_offsets": 2,
+                  "densify.clamp_scaling_to_end": str(to_end).lower()})
+    model = _model(cfg, torch.tensor([[0.0, 0, 0], [3, 0, 0], [6, 0, 0]]))
+    trainer = SimpleNamespace(cfg=cfg, model=model, optimizer=None, voxel_size=1.0,
+                              generator=torch.Generator().manual_seed(0),
+                              on_anchors_changed=lambda a, b: None)
+    hook = ScaffoldDensify(trainer)
+    with torch.no_grad():
+        model.per_anchor["scaling"][:, :3] = 2.0
+        model.per_anchor["scaling"][:, 3:] = 3.0
+    late = hook.update_until + hook.interval - hook.update_until % hook.interval
+    hook.after_step(late + 1)                       # not a multiple of the interval: nothing
+    assert (model.per_anchor["scaling"][:, 3:] == 3.0).all()
+    hook.after_step(late)
+    s = model.per_anchor["scaling"]
+    assert model.n_anchors == 3 and (s[:, :3] == 2.0).all()      # positions' scales untouched
+    expected = cfg.densify.prune_clamp_log_scaling if to_end else 3.0
+    assert torch.allclose(s[:, 3:], torch.full_like(s[:, 3:], expected))

@@ -165,11 +165,24 @@ class ScaffoldDensify:
             self.grad_denom.index_add_(0, kept[upd], torch.ones(int(upd.sum()), device=gn.device))
 
     def after_step(self, it: int) -> None:
-        if not (self.update_from < it < self.update_until) or it % self.interval != 0:
+        if it % self.interval != 0:
+            return
+        if it >= self.update_until and self.t.cfg.densify.clamp_scaling_to_end:
+            self.clamp_scaling()
+            return
+        if not (self.update_from < it < self.update_until):
             return
         if self.skip[0] <= it < self.skip[1]:
             return
         self.adjust()
+
+    def clamp_scaling(self) -> None:
+        """The reference's clamp of the scale multipliers: log-scaling[:, 3:] <= c (c < 0: off)."""
+        c = self.t.cfg.densify.prune_clamp_log_scaling
+        if c >= 0:
+            with torch.no_grad():
+                s = self.t.model.per_anchor["scaling"]
+                s[:, 3:] = s[:, 3:].clamp(max=c)
 
     def adjust(self) -> None:
         t = self.t
@@ -205,11 +218,7 @@ class ScaffoldDensify:
             keepk = keep[:, None].expand(-1, K).reshape(-1)
             self.grad_accum = self.grad_accum[keepk]
             self.grad_denom = self.grad_denom[keepk]
-        c = cfg.densify.prune_clamp_log_scaling
-        if c >= 0:
-            with torch.no_grad():
-                s = model.per_anchor["scaling"]
-                s[:, 3:] = s[:, 3:].clamp(max=c)
+        self.clamp_scaling()
         self.log["grown"] += added
         self.log["pruned"] += n_pruned
         t.on_anchors_changed(N0, model.n_anchors)
