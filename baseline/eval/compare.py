@@ -173,21 +173,28 @@ def reference_finished(spec: RunSpec) -> bool:
             and "reference" in record)
 
 
+def _train_stage(spec: RunSpec, scene_path: str, progress: bool,
+                 stage: Callable[[str], None]) -> tuple[dict, list[str]]:
+    """Stage 1 of a run (a compared method's or the reference's): train it unless its
+    results.json holds the test metrics at the configured iterations (an interrupted training
+    resumes from its checkpoint). Returns its results and ``["train"]`` if it trained now."""
+    from baseline.run import train_run
+
+    _check_scene(spec, scene_path)
+    res = _trained(spec)
+    if res is not None:
+        return res, []
+    stage("train")
+    return train_run(scene_path, spec.dir, spec.cfg, resume=True, progress=progress,
+                     evaluate_after=True), ["train"]
+
+
 def run_reference(spec: RunSpec, scene_path: str, progress: bool = True,
                   on_stage: Optional[Callable[[str], None]] = None) -> dict:
     """Train the reference (if not yet), measure its float32 size; return its row. Its quality
     is the trained model's on the test views (nothing is coded)."""
-    from baseline.run import train_run
-
     stage = on_stage or (lambda s: None)
-    _check_scene(spec, scene_path)
-    res = _trained(spec)
-    done = []
-    if res is None:
-        stage("train")
-        res = train_run(scene_path, spec.dir, spec.cfg, resume=True, progress=progress,
-                        evaluate_after=True)
-        done.append("train")
+    res, done = _train_stage(spec, scene_path, progress, stage)
     record = _read_json(spec.dir / RECORD)
     if record.get("config_hash") != spec.hash or done or "reference" not in record:
         record = {"method": spec.method.name, "method_patches": list(spec.method.patches),
@@ -363,18 +370,10 @@ def run_one(spec: RunSpec, scene_path: str, lpips_fn=None, lpips: Optional[str] 
     ``remeasure``: redo the encode and decode+eval stages of a trained run even when they are
     recorded (the same bytes are written again; times and FPS are retaken, e.g. on a quiet
     machine after runs were trained side by side)."""
-    from baseline.run import train_run
     from baseline.train.trainer import set_threads
 
     stage = on_stage or (lambda s: None)
-    _check_scene(spec, scene_path)
-    res = _trained(spec)
-    done = []
-    if res is None:
-        stage("train")
-        res = train_run(scene_path, spec.dir, spec.cfg, resume=True, progress=progress,
-                        evaluate_after=True)
-        done.append("train")
+    res, done = _train_stage(spec, scene_path, progress, stage)
     record = _read_json(spec.dir / RECORD)
     if record.get("config_hash") != spec.hash or done:
         record = {}                      # (re)trained now: an older file no longer applies
