@@ -69,15 +69,21 @@ class RunSpec:
         return f"{self.method.name} lambda={self.lmbda:g}"
 
 
+def _method_of(flag: str, value: str) -> Method:
+    """``"predict-gs+masks-x4"`` -> Method named by its patches (a ``.toml`` path by its stem)."""
+    parts = tuple(p.strip() for p in value.split("+") if p.strip())
+    if not parts:
+        raise ValueError(f"{flag} '{value}': expected one or more patch names joined by '+'")
+    return Method("+".join(Path(p).stem if p.endswith(".toml") else p for p in parts), parts)
+
+
 def parse_methods(vs: list[str]) -> list[Method]:
     """``["predict-gs", "predict-gs+entropy-factorized"]`` -> baseline + one Method each."""
     methods = [Method(BASELINE, ())]
     seen = {BASELINE}
     for v in vs:
-        parts = tuple(p.strip() for p in v.split("+") if p.strip())
-        if not parts:
-            raise ValueError(f"--vs '{v}': expected one or more patch names joined by '+'")
-        name = "+".join(Path(p).stem if p.endswith(".toml") else p for p in parts)
+        m = _method_of("--vs", v)
+        name, parts = m.name, m.patches
         if name in seen:
             raise ValueError(f"--vs '{v}': method '{name}' is listed twice")
         seen.add(name)
@@ -119,12 +125,7 @@ REFERENCE_PREFIX = "reference-"
 
 def parse_reference(ref: Optional[str]) -> Optional[Method]:
     """``"scaffold"`` -> the uncompressed reference method (patches on top of the common ones)."""
-    if ref is None:
-        return None
-    parts = tuple(p.strip() for p in ref.split("+") if p.strip())
-    if not parts:
-        raise ValueError(f"--reference '{ref}': expected one or more patch names joined by '+'")
-    return Method("+".join(Path(p).stem if p.endswith(".toml") else p for p in parts), parts)
+    return None if ref is None else _method_of("--reference", ref)
 
 
 def plan_reference(out: str | Path, method: Method, common_patches: list[str] = (),
