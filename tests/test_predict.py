@@ -83,6 +83,29 @@ def test_zero_correction_leaves_prediction_unchanged():
     assert not torch.allclose(g0.opacity_all, g2.opacity_all)
 
 
+def test_refined_gaussians_are_kept_before_they_are_activated():
+    """With the MGRD on (non-zero corrections), decode() keeps the Gaussians first and
+    activates only those: the same Gaussians as activating all candidates, then selecting."""
+    from baseline.scaffold.model import decode_all_then_select
+
+    torch.manual_seed(1)
+    cfg = _pgs_cfg("model.voxel_size=0.2")
+    model = _pgs_model(cfg)
+    with torch.no_grad():
+        model.per_anchor["residual"].normal_()
+        model.per_anchor["mask"].normal_(std=4.0)
+        for head in (model.refiner.shape_head, model.refiner.appearance_head):
+            head[2].weight.normal_(std=0.5)
+    model.refiner.active = True
+    idx = torch.arange(0, model.n_anchors, 2)
+    cam = torch.tensor([0.3, 0.1, -4.0])
+    got = model.decode(cam, idx)
+    want = decode_all_then_select(model, cam, idx)
+    assert 0 < len(want["means"]) < len(idx) * model.n_offsets
+    for k, v in want.items():
+        assert torch.allclose(getattr(got, k), v, rtol=1e-6, atol=1e-7), k
+
+
 def test_stage_switch_and_resolution_hook():
     from predict_plugin.hooks import PredictStages
 

@@ -9,6 +9,7 @@ from baseline.config import build_config
 from baseline.scaffold.anchors import init_log_scaling, knn_mean_sq_dist, voxelize
 from baseline.scaffold.densify import ScaffoldDensify, _unique_rows, grow_anchors
 from baseline.scaffold.build import build_model
+from baseline.scaffold.model import decode_all_then_select
 
 
 def test_voxelize_matches_bruteforce():
@@ -70,6 +71,40 @@ def test_decoder_shapes_and_opacity_selection():
     g2 = model.decode(torch.tensor([0.0, 0.0, -5.0]), idx)
     assert not (g2.anchor_index == 0).any()
     assert not model.anchor_valid()[0] and model.anchor_valid()[1:].all()
+
+
+def test_selected_gaussians_equal_activating_all_then_selecting():
+    """decode() activates only the kept Gaussians: the same values and gradients
+    as activating all candidates and selecting after, with masks and opacities mixed."""
+    torch.manual_seed(3)
+    cfg = _cfg(**{"model.voxel_size": 0.3})
+    model = _model(cfg, torch.rand(300, 3) * 4)
+    N, K = model.n_anchors, model.n_offsets
+    with torch.no_grad():
+        for name in ("offsets", "scaling", "feat"):
+            model.per_anchor[name].normal_()
+        model.per_anchor["mask"].copy_(torch.randn(N, K, 1) * 4)       # about 1/3 off
+        for mlp in (model.decoder.mlp_opacity, model.decoder.mlp_cov, model.decoder.mlp_color):
+            mlp[2].weight.normal_(std=0.3)
+    cam = torch.tensor([0.5, -1.0, -6.0])
+    for idx in (torch.arange(N), torch.randperm(N)[: N // 3].sort().values):
+        got = model.decode(cam, idx)
+        want = decode_all_then_select(model, cam, idx)
+        assert 0 < len(want["means"]) < len(idx) * K
+        for k, v in want.items():     # equal up to the vectorised kernels' last-bit rounding
+            assert getattr(got, k).shape == v.shape, k
+            assert torch.allclose(getattr(got, k), v, rtol=1e-6, atol=1e-7), k
+        # the same gradients reach every parameter
+        w = {k: torch.randn_like(v) for k, v in want.items() if v.is_floating_point()}
+        params = [p for p in model.parameters() if p.requires_grad]
+        g_got = torch.autograd.grad(sum((getattr(got, k) * w[k]).sum() for k in w), params,
+                                    allow_unused=True)
+        g_want = torch.autograd.grad(sum((want[k] * w[k]).sum() for k in w), params,
+                                     allow_unused=True)
+        for a, b in zip(g_got, g_want):
+            assert (a is None) == (b is None)
+            if a is not None:
+                assert torch.allclose(a, b, rtol=1e-5, atol=1e-6)
 
 
 def _growth_setup(skip: bool):

@@ -159,20 +159,17 @@ class AnchorModel(nn.Module):
         return vals
 
     # ------------------------------------------------------------------------- decoding
-    def decode(self, cam_center: torch.Tensor, idx: torch.Tensor,
-               values: Optional[dict[str, torch.Tensor]] = None,
-               xyz: Optional[torch.Tensor] = None, visible: Optional[torch.Tensor] = None) -> Gaussians:
-        """Neural Gaussians of anchors ``idx`` [M] seen from ``cam_center`` [3].
+    def raw_heads(self, cam_center: torch.Tensor, idx: torch.Tensor,
+                  values: Optional[dict[str, torch.Tensor]] = None,
+                  xyz: Optional[torch.Tensor] = None):
+        """Pre-activation head outputs of anchors ``idx`` [M] (refiner corrections included).
 
-        Args:
-            values: coded attribute values for ``idx`` (possibly quantized); default: raw values.
-            xyz: [M,3] anchor positions to use (e.g. 16-bit quantized); default: stored ones.
+        Returns ``(values, xyz [M,3], raw_opacity [M,K], raw_cov [M,K,7], raw_color [M,K,3])``.
         """
         if values is None:
             values = self.coded_values(idx)
         if xyz is None:
             xyz = self.per_anchor["xyz"][idx]
-        M, K = len(idx), self.n_offsets
         feat = self.provider.decoder_features(idx, values, xyz)
         view = xyz - cam_center.to(xyz)[None, :]
         dist = view.norm(dim=1, keepdim=True).clamp_min(1e-8)
@@ -184,22 +181,41 @@ class AnchorModel(nn.Module):
             raw_op = raw_op + d["opacity"]
             raw_cov = raw_cov + d["cov"]
             raw_col = raw_col + d["color"]
+        return values, xyz, raw_op, raw_cov, raw_col
+
+    def decode(self, cam_center: torch.Tensor, idx: torch.Tensor,
+               values: Optional[dict[str, torch.Tensor]] = None,
+               xyz: Optional[torch.Tensor] = None, visible: Optional[torch.Tensor] = None) -> Gaussians:
+        """Neural Gaussians of anchors ``idx`` [M] seen from ``cam_center`` [3].
+
+        Args:
+            values: coded attribute values for ``idx`` (possibly quantized); default: raw values.
+            xyz: [M,3] anchor positions to use (e.g. 16-bit quantized); default: stored ones.
+        """
+        values, xyz, raw_op, raw_cov, raw_col = self.raw_heads(cam_center, idx, values, xyz)
+        M, K = len(idx), self.n_offsets
         gmask = self.gaussian_mask(idx)                             # [M,K]
         opacity = torch.tanh(raw_op) * gmask                        # [M,K]
         sel = (opacity > 0).reshape(-1)                             # [M*K]
-        scaling = values["scaling"]                                 # [M,6] activated
-        offsets = values["offsets"].view(M, K, 3) * scaling[:, None, :3]
-        means = (xyz[:, None, :] + offsets).reshape(-1, 3)
-        scales = (scaling[:, None, 3:] * torch.sigmoid(raw_cov[..., :3])).reshape(-1, 3)
-        quats = F.normalize(raw_cov[..., 3:7].reshape(-1, 4), dim=-1)
-        colors = torch.sigmoid(raw_col).reshape(-1, 3)
-        anchor_index = idx[:, None].expand(M, K).reshape(-1)
-        vis = torch.zeros(self.n_anchors, dtype=torch.bool, device=idx.device)
-        vis[idx] = True
-        return Gaussians(means=means[sel], quats=quats[sel], scales=scales[sel],
-                         opacities=opacity.reshape(-1)[sel], colors=colors[sel],
-                         anchor_index=anchor_index[sel], selection=sel, opacity_all=opacity,
-                         visible=vis if visible is None else visible)
+        # The kept Gaussians are chosen first and only their attributes are activated: the
+        # same per-element arithmetic as activating all M*K candidates and selecting after,
+        # without the work on the ~70-80% that a trained model drops (masks off, opacity <= 0).
+        keep = sel.nonzero()[:, 0]                                  # [G] into the M*K candidates
+        row = torch.div(keep, K, rounding_mode="floor")             # [G] visible-anchor row
+        scaling = values["scaling"][row]                            # [G,6] activated
+        offsets = values["offsets"].reshape(M * K, 3)[keep] * scaling[:, :3]
+        means = xyz[row] + offsets
+        cov = raw_cov.reshape(M * K, 7)[keep]
+        scales = scaling[:, 3:] * torch.sigmoid(cov[:, :3])
+        quats = F.normalize(cov[:, 3:7], dim=-1)
+        colors = torch.sigmoid(raw_col.reshape(M * K, 3)[keep])
+        if visible is None:
+            visible = torch.zeros(self.n_anchors, dtype=torch.bool, device=idx.device)
+            visible[idx] = True
+        return Gaussians(means=means, quats=quats, scales=scales,
+                         opacities=opacity.reshape(-1)[keep], colors=colors,
+                         anchor_index=idx[row], selection=sel, opacity_all=opacity,
+                         visible=visible)
 
     # ------------------------------------------------------------------- growing / pruning
     def append_anchors(self, new_xyz: torch.Tensor, new_log_scaling: torch.Tensor,
@@ -226,6 +242,32 @@ class AnchorModel(nn.Module):
         """Keep only anchors where ``keep`` [N] is True (prune the rest)."""
         for name, p in list(self.per_anchor.items()):
             _replace_param(self.per_anchor, name, p.detach()[keep], optimizer, keep=keep)
+
+
+def decode_all_then_select(model: AnchorModel, cam_center: torch.Tensor, idx: torch.Tensor,
+                           values: Optional[dict[str, torch.Tensor]] = None,
+                           xyz: Optional[torch.Tensor] = None) -> dict[str, torch.Tensor]:
+    """Reference form of :meth:`AnchorModel.decode`'s last step, in Scaffold-GS's own order:
+    activate all M*K candidate Gaussians, then keep those with masked opacity > 0.
+
+    Returns the kept Gaussians' ``means, quats, scales, opacities, colors, anchor_index``.
+    ``decode`` keeps first and activates only the kept ones; tests and ``pgs bench frame``
+    compare the two.
+    """
+    values, xyz, raw_op, raw_cov, raw_col = model.raw_heads(cam_center, idx, values, xyz)
+    M, K = len(idx), model.n_offsets
+    opacity = torch.tanh(raw_op) * model.gaussian_mask(idx)
+    sel = (opacity > 0).reshape(-1)
+    scaling = values["scaling"]
+    offsets = values["offsets"].view(M, K, 3) * scaling[:, None, :3]
+    means = (xyz[:, None, :] + offsets).reshape(-1, 3)
+    scales = (scaling[:, None, 3:] * torch.sigmoid(raw_cov[..., :3])).reshape(-1, 3)
+    quats = F.normalize(raw_cov[..., 3:7].reshape(-1, 4), dim=-1)
+    colors = torch.sigmoid(raw_col).reshape(-1, 3)
+    anchor_index = idx[:, None].expand(M, K).reshape(-1)
+    return dict(means=means[sel], quats=quats[sel], scales=scales[sel],
+                opacities=opacity.reshape(-1)[sel], colors=colors[sel],
+                anchor_index=anchor_index[sel])
 
 
 def _replace_param(pdict: nn.ParameterDict, name: str, new_value: torch.Tensor, optimizer,
