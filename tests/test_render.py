@@ -509,6 +509,40 @@ def test_prefilter_anchors():
     assert v[inside].all()
 
 
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_prefilter_closed_form_matches_the_matrix_form(seed):
+    """Rotated, off-centre cameras; anchors from tiny to huge, some near the image border,
+    behind the camera, at z around the 0.2 threshold, and with inf / nan values."""
+    g = torch.Generator().manual_seed(seed)
+    q = torch.nn.functional.normalize(torch.randn(4, generator=g, dtype=torch.float64), dim=0)
+    w, x, y, z = q.tolist()
+    R = torch.tensor([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                      [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                      [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+    vm = torch.eye(4)
+    vm[:3, :3] = R.float()
+    vm[:3, 3] = torch.randn(3, generator=g)
+    cam = Camera(viewmat=vm, fx=70.0, fy=65.0, cx=40.0, cy=27.0, width=96, height=64,
+                 near=0.01, far=1e10)
+    n = 20000
+    xyz = (torch.rand(n, 3, generator=g) * 2 - 1) * 8
+    scales = torch.exp(torch.randn(n, 3, generator=g) * 2.5 - 3)
+    # the camera-space depth of some anchors right at the threshold
+    cam_p = torch.cat([torch.randn(200, 2, generator=g), torch.full((200, 1), 0.2)], 1)
+    cam_p[:100, 2] += torch.linspace(-1e-6, 1e-6, 100)
+    world = (cam_p.double() - vm[:3, 3].double()) @ vm[:3, :3].double()
+    xyz[:200] = world.float()
+    xyz[200, 0], xyz[201, 1], scales[202, 2], scales[203, 0] = float("inf"), float("nan"), \
+        float("inf"), float("nan")
+    from baseline.render.prefilter import prefilter_anchors_matrix_form
+
+    got = prefilter_anchors(xyz, scales, cam)
+    want = prefilter_anchors_matrix_form(xyz, scales, cam)
+    assert 0.05 < want.float().mean() < 0.95
+    assert not got[200:204].any()
+    assert torch.equal(got, want), int((got != want).sum())
+
+
 # ------------------------------------------------------------------------------------------
 # benchmark (correctness of the harness only; no wall-clock assertions)
 # ------------------------------------------------------------------------------------------
