@@ -215,9 +215,17 @@ def cmd_bench(args) -> int:
     elif args.what == "fps":
         from baseline.eval.fpsbench import bench_files, format_fps_bench
 
-        print(format_fps_bench(bench_files(args.run, scene=args.scene, rounds=args.rounds,
+        rounds = 5 if args.rounds is None else args.rounds
+        print(format_fps_bench(bench_files(args.run, scene=args.scene, rounds=rounds,
                                            threads=args.threads, device=args.device,
                                            max_views=args.views)))
+    elif args.what == "frame":
+        from baseline.eval.fpsbench import bench_frame_files, format_frame_bench
+
+        rounds = 3 if args.rounds is None else args.rounds
+        print(format_frame_bench(bench_frame_files(args.run, scene=args.scene, rounds=rounds,
+                                                   threads=args.threads, device=args.device,
+                                                   max_views=args.views)))
     return 0
 
 
@@ -341,18 +349,20 @@ def main(argv=None) -> int:
     p.set_defaults(fn=cmd_export_ply)
 
     p = sub.add_parser("bench", help="benchmarks, printed as ratios to a reference in one process")
-    p.add_argument("what", choices=["raster", "codec", "grid", "fps"])
+    p.add_argument("what", choices=["raster", "codec", "grid", "fps", "frame"])
     p.add_argument("--threads", type=int, default=None)
     p.add_argument("--anchors", type=int, default=None,
                    help="payload size (default: codec 500k, grid 100k)")
     p.add_argument("--run", action="append", default=[],
-                   help="codec: also encode and decode this trained run folder; fps: a .pgs file "
-                        "or a run folder with model.pgs, the first is the reference (repeatable)")
-    p.add_argument("--rounds", type=int, default=5, help="fps: timed passes over the views")
+                   help="codec: also encode and decode this trained run folder; fps / frame: a "
+                        ".pgs file or a run folder with model.pgs (fps: the first is the "
+                        "reference) (repeatable)")
+    p.add_argument("--rounds", type=int, default=None,
+                   help="fps / frame: timed passes over the views (default 5 / 3)")
     p.add_argument("--scene", default=None,
-                   help="fps: the scene (default: the one each file names in its header)")
-    p.add_argument("--views", type=int, default=None, help="fps: time only the first N views")
-    p.add_argument("--device", default="cpu", help="fps: cpu | cuda | cuda:N | auto")
+                   help="fps / frame: the scene (default: the one each file names in its header)")
+    p.add_argument("--views", type=int, default=None, help="fps / frame: time only the first N views")
+    p.add_argument("--device", default="cpu", help="fps / frame: cpu | cuda | cuda:N | auto")
     p.set_defaults(fn=cmd_bench)
 
     p = sub.add_parser("compare", help="train/encode/decode methods side by side: tables, BD-rate, plots")

@@ -157,3 +157,29 @@ def test_cli_prints_the_table(files, capsys):
                  str(files["predict-gs"]), "--rounds", "1", "--views", "1", "--threads", "1"]) == 0
     out = capsys.readouterr().out
     assert "1 test views" in out and "predict-gs (no cache)" in out
+
+
+def test_frame_bench_times_each_stage_against_its_reference_form(files, capsys):
+    """pgs bench frame: per stage, the current code and its reference form (checked equal on
+    every view inside the bench) for each file, the cache as decoded; printed per model."""
+    from baseline.cli import main
+    from baseline.eval.fpsbench import FRAME_STAGES, bench_frame_files, format_frame_bench
+
+    res = bench_frame_files([str(files["baseline"]), str(files["predict-gs"])], rounds=2,
+                            threads=1, max_views=2)
+    assert [m["label"] for m in res["models"]] == ["baseline", "predict-gs"]
+    assert res["views"] == 2 and res["rounds"] == 2 and res["threads"] == 1
+    for m in res["models"]:
+        st = m["stages"]
+        assert st["gaussians"] > 0
+        for k in FRAME_STAGES:
+            assert len(st[k]["new"]) == 2 and all(t > 0 for t in st[k]["new"])
+        assert all(t > 0 for t in st["prefilter"]["ref"] + st["decode"]["ref"])
+        assert st["rasterize"]["ref"] is None
+    text = format_frame_bench(res)
+    assert text.count("\nprefilter ") == 2 and text.count("\nframe ") == 2
+    with pytest.raises(ValueError, match="rounds must be"):
+        bench_frame_files([str(files["baseline"])], rounds=0)
+    assert main(["bench", "frame", "--run", str(files["predict-gs"]), "--rounds", "1",
+                 "--views", "1", "--threads", "1"]) == 0
+    assert "reference form" in capsys.readouterr().out

@@ -141,8 +141,6 @@ def bench_files(paths: Sequence[str], *, scene: Optional[str] = None, rounds: in
     """
     from baseline.render import cpu as cpu_backend
 
-    if not paths:
-        raise ValueError("fps bench: give at least one --run (a .pgs file or a run folder)")
     old_threads, old_cpu_threads = torch.get_num_threads(), cpu_backend._THREADS
     if threads:
         torch.set_num_threads(int(threads))
@@ -154,11 +152,14 @@ def bench_files(paths: Sequence[str], *, scene: Optional[str] = None, rounds: in
         cpu_backend.set_num_threads(old_cpu_threads)
 
 
-def _bench_files(paths, scene, rounds, device, max_views) -> dict:
-    from baseline.device import device_name, resolve_device
-    from baseline.render import resolve_backend
+def _decode_files(paths, scene, device, max_views):
+    """Decode each file (or run folder): ``(decoded [(label, DecodedModel)], cameras,
+    background, backend, scene path, device)``; all files must render the same views."""
+    from baseline.device import resolve_device
     from baseline.run import load_scene_for
 
+    if not paths:
+        raise ValueError("bench: give at least one --run (a .pgs file or a run folder)")
     dev = resolve_device(device)
     decoded, key0, label_seen = [], None, set()
     for p in paths:
@@ -171,7 +172,7 @@ def _bench_files(paths, scene, rounds, device, max_views) -> dict:
         if key0 is None:
             key0, cfg0, scene_path0 = key, dec.cfg, sp
         elif key != key0:
-            raise ValueError(f"fps bench compares models on the same views: {f} renders {key}, "
+            raise ValueError(f"bench: models are compared on the same views: {f} renders {key}, "
                              f"the first file {key0}")
         label = Path(p).name if Path(p).is_dir() else f.stem
         while label in label_seen:
@@ -184,13 +185,153 @@ def _bench_files(paths, scene, rounds, device, max_views) -> dict:
     if max_views:
         cams = cams[:max_views]
     bg = sc.background.float().to(dev)
-    backend = cfg0.train.rasterizer
+    split = "test" if sc.test_cameras else "train"
+    return decoded, cams, bg, cfg0.train.rasterizer, scene_path0, dev, split
+
+
+def _bench_files(paths, scene, rounds, device, max_views) -> dict:
+    from baseline.device import device_name
+    from baseline.render import resolve_backend
+
+    decoded, cams, bg, backend, scene_path0, dev, split = _decode_files(paths, scene, device,
+                                                                        max_views)
     contenders = [c for label, dec in decoded for c in contenders_of(label, dec.model)]
     rows = run_fps_bench(contenders, cams, bg, rounds=rounds, backend=backend)
-    return dict(rows=rows, views=len(cams), split="test" if sc.test_cameras else "train",
+    return dict(rows=rows, views=len(cams), split=split,
                 rounds=rounds, threads=torch.get_num_threads(), device=device_name(dev),
                 backend=resolve_backend(backend, decoded[0][1].model.xyz),
                 scene=scene_path0, size=f"{cams[0].width}x{cams[0].height}")
+
+
+# ------------------------------------------------------------------------------ pgs bench frame
+FRAME_STAGES = ("prefilter", "decode", "rasterize")
+
+
+@torch.no_grad()
+def time_frame_stages(model, cameras, background, *, rounds: int = 3,
+                      backend: str = "auto") -> dict:
+    """Seconds per view of each stage of a decoded frame, the current code against its
+    reference form in one process (alternating, the order swapped every round):
+
+    * ``prefilter``: :func:`prefilter_anchors` (closed form) vs its matrix form;
+    * ``decode``: :meth:`AnchorModel.decode` (keeps the Gaussians, then activates them) vs
+      :func:`decode_all_then_select`;
+    * ``rasterize``: the kept Gaussians through the backend (one form; for the frame's share).
+
+    Returns ``{stage: {"new": [rounds] s/view, "ref": [rounds] s/view or None}}``, plus
+    ``gaussians`` per view; the two forms' outputs are checked equal on every view.
+    """
+    from baseline.pipeline import visible_anchors
+    from baseline.render import rasterize
+    from baseline.render.prefilter import prefilter_anchors, prefilter_anchors_matrix_form
+    from baseline.scaffold.model import decode_all_then_select
+
+    sync = torch.cuda.synchronize if model.xyz.is_cuda else (lambda *a: None)
+
+    def timed(fn):
+        sync()
+        t0 = time.perf_counter()
+        out = fn()
+        sync()
+        return out, time.perf_counter() - t0
+
+    res = {k: {"new": [0.0] * rounds, "ref": [0.0] * rounds} for k in FRAME_STAGES}
+    res["rasterize"]["ref"] = None
+    n_gauss = 0
+    xyz = model.xyz.detach()
+    scales = torch.exp(model.per_anchor["scaling"].detach()[:, :3])
+    for r in range(-1, rounds):            # round -1: warm-up, untimed
+        for cam in cameras:
+            forms = ("new", "ref") if r % 2 == 0 else ("ref", "new")
+            vis = {}
+            for form in forms:
+                fn = prefilter_anchors if form == "new" else prefilter_anchors_matrix_form
+                vis[form], dt = timed(lambda: fn(xyz, scales, cam))
+                if r >= 0:
+                    res["prefilter"][form][r] += dt / len(cameras)
+            if not torch.equal(vis["new"], vis["ref"]):
+                raise AssertionError("bench frame: the two prefilter forms disagree")
+            idx = visible_anchors(model, cam)
+            g = {}
+            for form in forms:
+                if form == "new":
+                    g[form], dt = timed(lambda: model.decode(cam.center, idx))
+                else:
+                    g[form], dt = timed(lambda: decode_all_then_select(model, cam.center, idx))
+                if r >= 0:
+                    res["decode"][form][r] += dt / len(cameras)
+            if g["new"].means.shape != g["ref"]["means"].shape:
+                raise AssertionError("bench frame: the two decode forms keep different Gaussians")
+            gn = g["new"]
+            _, dt = timed(lambda: rasterize(gn.means, gn.quats, gn.scales, gn.opacities,
+                                            gn.colors, cam, background=background,
+                                            backend=backend))
+            if r >= 0:
+                res["rasterize"]["new"][r] += dt / len(cameras)
+                n_gauss += int(gn.means.shape[0])
+    res["gaussians"] = n_gauss / max(1, rounds * len(cameras))
+    return res
+
+
+def bench_frame_files(paths: Sequence[str], *, scene: Optional[str] = None, rounds: int = 3,
+                      threads: Optional[int] = None, device: str = "cpu",
+                      max_views: Optional[int] = None) -> dict:
+    """``pgs bench frame``: :func:`time_frame_stages` for each decoded file (cache as decoded)."""
+    from baseline.device import device_name
+    from baseline.render import cpu as cpu_backend
+    from baseline.render import resolve_backend
+
+    if rounds < 1:
+        raise ValueError(f"frame bench: rounds must be >= 1, got {rounds}")
+    old_threads, old_cpu_threads = torch.get_num_threads(), cpu_backend._THREADS
+    if threads:
+        torch.set_num_threads(int(threads))
+        cpu_backend.set_num_threads(int(threads))
+    try:
+        decoded, cams, bg, backend, scene_path0, dev, split = _decode_files(paths, scene, device,
+                                                                            max_views)
+        models = [dict(label=label, stages=time_frame_stages(dec.model, cams, bg, rounds=rounds,
+                                                             backend=backend))
+                  for label, dec in decoded]
+        return dict(models=models, views=len(cams), split=split, rounds=rounds,
+                    threads=torch.get_num_threads(), device=device_name(dev),
+                    backend=resolve_backend(backend, decoded[0][1].model.xyz),
+                    scene=scene_path0, size=f"{cams[0].width}x{cams[0].height}")
+    finally:
+        torch.set_num_threads(old_threads)
+        cpu_backend.set_num_threads(old_cpu_threads)
+
+
+def format_frame_bench(res: dict) -> str:
+    lines = [f"frame bench: {res['views']} {res['split']} views of {res['scene']} at "
+             f"{res['size']}, {res['rounds']} rounds, {res['threads']} thread(s), "
+             f"{res['device']}, backend {res['backend']}"]
+    for m in res["models"]:
+        st = m["stages"]
+        lines += ["", f"{m['label']}  ({st['gaussians']:,.0f} Gaussians/view)",
+                  f"{'stage':<10}  {'ms/view':>8}  {'reference form':>14}  {'x ref':>6}  "
+                  f"{'x ref range':>11}", "-" * 57]
+        tot_new = tot_ref = 0.0
+        for k in FRAME_STAGES:
+            new = statistics.median(st[k]["new"])
+            ref = None if st[k]["ref"] is None else statistics.median(st[k]["ref"])
+            tot_new += new
+            tot_ref += new if ref is None else ref
+            if ref is None:
+                lines.append(f"{k:<10}  {1000 * new:>8.1f}  {'-':>14}  {'-':>6}  {'':>11}")
+                continue
+            ratios = [a / b for a, b in zip(st[k]["ref"], st[k]["new"])]
+            lines.append(f"{k:<10}  {1000 * new:>8.1f}  {1000 * ref:>14.1f}  "
+                         f"{statistics.median(ratios):>6.2f}  "
+                         f"{min(ratios):>5.2f}-{max(ratios):<5.2f}")
+        lines.append(f"{'frame':<10}  {1000 * tot_new:>8.1f}  {1000 * tot_ref:>14.1f}  "
+                     f"{tot_ref / tot_new:>6.2f}")
+    lines.append("ms/view: median over rounds of the mean over views; reference form: the same "
+                 "stage written the way it was before (prefilter with [N,3,3] covariances, "
+                 "decode activating all M*K candidates before selecting), run alternately in "
+                 "this process and checked equal; x ref = reference time / this time (> 1: "
+                 "faster).")
+    return "\n".join(lines)
 
 
 def format_fps_bench(res: dict) -> str:
