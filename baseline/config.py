@@ -140,6 +140,11 @@ class EntropyConfig:
     mask_lambda: float = 0.0005
     mask_threshold: float = 0.01
     rate_sample: float = 0.05
+    # What the decoder sees in training once values are quantized: "noise" (HAC: x + U(-.5,.5) Q)
+    # or "ste" (the rounded values of evaluation, straight-through gradient; the rate is still
+    # estimated with noise). With "noise" the decoder learns to use information below the step
+    # that rounding deletes (baseline/hac/quant.py ste_round_q; patch quant-ste).
+    decoder_quant: str = "noise"
     context_hidden: int = 100
     position_bits: int = 16
     grid: GridConfig = field(default_factory=GridConfig)
@@ -311,6 +316,9 @@ def validate(cfg: Config) -> None:
     dev = cfg.train.device
     if not (dev in ("auto", "cpu", "cuda") or re.fullmatch(r"cuda:\d+", dev)):
         raise ConfigError(f"train.device must be auto, cpu, cuda or cuda:N, got '{dev}'")
+    if cfg.entropy.decoder_quant not in ("noise", "ste"):
+        raise ConfigError(f"entropy.decoder_quant must be 'noise' or 'ste', got "
+                          f"'{cfg.entropy.decoder_quant}'")
     if cfg.codec.weight_dtype not in ("float32", "float16"):
         raise ConfigError(f"codec.weight_dtype must be float32 or float16, got '{cfg.codec.weight_dtype}'")
 
@@ -370,7 +378,8 @@ EXECUTION_KEYS = (("train", "device"),)
 # runs: left out of the hash while at that default, so adding an option does not orphan every
 # finished run (and its archived records) under a new hash.
 LATER_KEYS = {("lr", "mask_schedule_scaled"): False,
-              ("densify", "clamp_scaling_to_end"): False}
+              ("densify", "clamp_scaling_to_end"): False,
+              ("entropy", "decoder_quant"): "noise"}
 
 
 def config_hash(cfg: Config) -> str:

@@ -18,6 +18,7 @@ import torch
 
 from baseline.camera import Camera
 from baseline.device import uniform
+from baseline.hac.quant import ste_round
 from baseline.render import prefilter_anchors, rasterize
 
 
@@ -50,7 +51,8 @@ def visible_anchors(model, cam: Camera) -> torch.Tensor:
 def render_view(model, cam: Camera, background: torch.Tensor, *, phase: str = "none",
                 training: bool = False, entropy=None, rate_sample: float = 0.0,
                 backend: str = "auto", generator: Optional[torch.Generator] = None,
-                quantized_xyz: Optional[torch.Tensor] = None) -> ViewResult:
+                quantized_xyz: Optional[torch.Tensor] = None,
+                decoder_quant: str = "noise") -> ViewResult:
     """Render one view.
 
     Args:
@@ -62,6 +64,9 @@ def render_view(model, cam: Camera, background: torch.Tensor, *, phase: str = "n
         rate_sample: fraction of visible, valid anchors on which bits are estimated (training).
         quantized_xyz: [N,3] positions to decode from in evaluation of the ``adaptive`` phase
             (the 16-bit positions the codec stores); default: the stored positions.
+        decoder_quant: in training, what the decoder sees in the ``noise`` and ``adaptive``
+            phases: ``noise`` (HAC: x + U(-0.5, 0.5) Q) or ``ste`` (the rounded values of
+            evaluation, straight-through gradient; the rate is still estimated with noise).
     """
     idx = visible_anchors(model, cam)
     values = model.coded_values(idx)
@@ -70,7 +75,9 @@ def render_view(model, cam: Camera, background: torch.Tensor, *, phase: str = "n
     n_rate = 0
     attrs = {a.name: a for a in model.coded_attributes()}
     if phase == "noise":
-        if training:
+        if training and decoder_quant == "ste":
+            values = {k: ste_round(v, attrs[k].q0) for k, v in values.items()}
+        elif training:
             values = {k: v + (uniform(v.shape, generator, v.device) - 0.5) * attrs[k].q0
                       for k, v in values.items()}
         else:
@@ -82,7 +89,8 @@ def render_view(model, cam: Camera, background: torch.Tensor, *, phase: str = "n
         if training:
             valid = (gmask.detach() > 0).any(dim=1)
             choose = (uniform(len(idx), generator, idx.device) <= rate_sample) & valid
-            values, bits = entropy(xyz, values, gmask, training=True, rate_rows=choose)
+            values, bits = entropy(xyz, values, gmask, training=True, rate_rows=choose,
+                                   decoder_quant=decoder_quant)
             n_rate = int(choose.sum())
         else:
             if quantized_xyz is not None:

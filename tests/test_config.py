@@ -123,3 +123,11 @@ def test_hash_of_finished_runs_survives_new_options():
     assert on.lr.mask_schedule_scaled and config_hash(on) not in archived
     clamp = build_config(["cpu", "demo"], ["entropy.lmbda=0.004", "densify.clamp_scaling_to_end=true"])
     assert ("densify", "clamp_scaling_to_end") in LATER_KEYS and config_hash(clamp) not in archived
+    ste = build_config(["cpu", "demo", "quant-ste"], ["entropy.lmbda=0.004"])
+    assert ("entropy", "decoder_quant") in LATER_KEYS and ste.entropy.decoder_quant == "ste"
+    assert config_hash(ste) not in archived
+
+
+def test_decoder_quant_is_validated():
+    with pytest.raises(ConfigError, match="decoder_quant"):
+        build_config([], ["entropy.decoder_quant=round"])

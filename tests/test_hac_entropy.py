@@ -423,3 +423,67 @@ def test_exact_grid_features_equal_integer_reference():
                     col += 1
                 off += rows
     assert col == got.shape[1]
+
+
+# ------------------------------------------------------- decoder_quant = "ste"
+def test_ste_round_q_values_and_gradients():
+    """Forward: the rounded values of evaluation (clamp included). Backward: identity to x and,
+    to the step, the rounding error in steps (summed over what q broadcasts across), checked
+    against the value written as x + q * e with e held constant."""
+    from baseline.hac.quant import ste_round_q
+
+    g = torch.Generator().manual_seed(3)
+    x = (torch.randn(64, 5, generator=g, dtype=torch.float64) * 2).requires_grad_()
+    q = (torch.rand(64, 1, generator=g, dtype=torch.float64) + 0.25).requires_grad_()
+    y = ste_round_q(x, q)
+    assert torch.equal(y.detach(), ste_round(x.detach(), q.detach()))
+    w = torch.randn(64, 5, generator=g, dtype=torch.float64)
+    (y * w).sum().backward()
+    assert torch.equal(x.grad, w)
+    e = ((y.detach() - x.detach()) / q.detach())
+    assert torch.all(e.abs() <= 0.5 + 1e-12)
+    x2, q2 = x.detach().clone().requires_grad_(), q.detach().clone().requires_grad_()
+    ((x2 + q2 * e) * w).sum().backward()
+    assert torch.allclose(q.grad, q2.grad, rtol=1e-12, atol=1e-12)
+    # a scalar step gets the sum over every value
+    qs = torch.tensor(0.7, dtype=torch.float64, requires_grad=True)
+    x3 = x.detach().clone().requires_grad_()
+    (ste_round_q(x3, qs) * w).sum().backward()
+    e3 = (torch.round(x3.detach() / 0.7) * 0.7 - x3.detach()) / 0.7
+    assert torch.allclose(qs.grad, (w * e3).sum(), rtol=1e-12)
+
+
+@pytest.mark.parametrize("kind", ["hac", "factorized"])
+def test_decoder_quant_ste_rounds_what_the_decoder_sees_and_keeps_the_noisy_rate(kind):
+    """Training with decoder_quant="ste": values equal the evaluation's rounded ones, bits are
+    the noise proxy's (the same draws as "noise"), gradients reach the values straight through
+    and the adaptive steps (HAC) through the rounding error."""
+    m = make_hac() if kind == "hac" else FactorizedEntropyModel(ATTRS, 10)
+    n = 300
+    g = torch.Generator().manual_seed(11)
+    xyz = torch.rand(n, 3, generator=g) * 2 - 1
+    vals = {a.name: torch.randn(n, a.dims, generator=g) * (1 if a.name != "scaling" else 0.01)
+            for a in ATTRS}
+    mask = (torch.rand(n, 10, generator=g) < 0.5).float()
+    torch.manual_seed(0)
+    v_noise, b_noise = m(xyz, vals, mask, training=True)
+    torch.manual_seed(0)
+    v_ste, b_ste = m(xyz, vals, mask, training=True, decoder_quant="ste")
+    v_eval, _ = m(xyz, vals, mask, training=False)
+    for a in ATTRS:
+        assert torch.equal(b_ste[a.name], b_noise[a.name])
+        assert torch.allclose(v_ste[a.name], v_eval[a.name], rtol=0, atol=1e-6)
+        assert not torch.allclose(v_ste[a.name], v_noise[a.name])
+    with pytest.raises(ValueError, match="decoder_quant"):
+        m(xyz, vals, mask, training=True, decoder_quant="round")
+    if kind == "hac":
+        m.zero_grad()
+        vg = {k: v.clone().requires_grad_() for k, v in vals.items()}
+        out, _ = m(xyz, vg, mask, training=True, decoder_quant="ste")
+        w = {k: torch.randn(v.shape, generator=g) for k, v in out.items()}
+        sum((out[k] * w[k]).sum() for k in out).backward()   # a loss on the decoded values only
+        for k in vg:
+            assert torch.equal(vg[k].grad, w[k])
+        last = m.mlp[-1]
+        adj_rows = last.weight.grad[-len(ATTRS):]            # the Q-adjustment outputs
+        assert adj_rows.abs().sum() > 0

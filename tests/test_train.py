@@ -129,3 +129,41 @@ def test_mask_lr_scales_with_the_schedule_only_when_asked(scene_dir, tmp_path):
     assert scaled["mask"] == pytest.approx((0.01 * ext * 50, 0.0001 * ext * 50))   # 30000 / 600
     assert {k: v for k, v in scaled.items() if k != "mask"} == \
         {k: v for k, v in plain.items() if k != "mask"}
+
+
+@pytest.mark.parametrize("mode", ["noise", "ste"])
+def test_decoder_quant_sets_what_the_decoder_sees_in_training(scene_dir, tmp_path, mode):
+    """entropy.decoder_quant: in the noise phase (step q0) and the adaptive phase (per-anchor
+    steps from the entropy model), the decoder receives values on the quantization grid with
+    "ste" and noisy values off it with "noise" (HAC's default)."""
+    scene = load_scene(scene_dir)
+    t = Trainer(_cfg(60, f"entropy.decoder_quant={mode}"), scene, tmp_path / mode, progress=False)
+    seen = {}
+    decode = t.model.decode
+
+    def spy(cam_center, idx, values=None, xyz=None, visible=None):
+        seen["values"] = {k: v.detach().clone() for k, v in values.items()}
+        with torch.no_grad():   # the steps of this forward (the update after it changes them)
+            P = t.entropy.params(t.model.xyz.detach()[idx])
+        seen["q"] = {k: P[k][2] for k in seen["values"]}
+        return decode(cam_center, idx, values, xyz=xyz, visible=visible)
+
+    t.model.decode = spy
+    q0 = {a.name: a.q0 for a in t.model.coded_attributes()}
+    on_grid = {}
+    for it in range(1, 31):
+        t.step(it)
+        t.iteration = it
+        if t.phase == "noise":
+            steps = {k: torch.tensor(q) for k, q in q0.items()}
+        elif t.phase == "adaptive":
+            steps = seen["q"]
+        else:
+            continue
+        for k, v in seen["values"].items():
+            r = v / steps[k]
+            on_grid.setdefault((t.phase, k), []).append(
+                bool(torch.all((r - torch.round(r)).abs() < 1e-3)))
+    assert {ph for ph, _ in on_grid} == {"noise", "adaptive"}
+    for key, flags in on_grid.items():
+        assert all(flags) if mode == "ste" else not any(flags), (key, flags)

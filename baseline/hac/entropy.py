@@ -61,7 +61,8 @@ from baseline.codec.rangecoder import (DEFAULT_ESCAPE_LIMIT, GaussianStreamDecod
 from baseline.codec.weights import pack_state_dict, round_module_, unpack_state_dict
 from baseline.hac.exact import ExactMLP, det_exp, det_tanh
 from baseline.hac.hashgrid import FEATURE_BITS, BinaryHashGrid
-from baseline.hac.quant import CLAMP_STEPS, Q_FLOOR, adaptive_q, noise_quantize, ste_round
+from baseline.hac.quant import (CLAMP_STEPS, Q_FLOOR, adaptive_q, noise_quantize, ste_round,
+                                ste_round_q)
 
 LIKELIHOOD_FLOOR = 1e-6
 SCALE_FLOOR = 1e-9
@@ -166,14 +167,21 @@ class EntropyModel(nn.Module):
     # --------------------------------------------------------------- training
     def forward(self, xyz: torch.Tensor, values: Dict[str, torch.Tensor],
                 gauss_mask: Optional[torch.Tensor] = None, training: bool = True,
-                adaptive_q: bool = True, rate_rows: Optional[torch.Tensor] = None):
+                adaptive_q: bool = True, rate_rows: Optional[torch.Tensor] = None,
+                decoder_quant: str = "noise"):
         """Quantized values and per-anchor bits per attribute (see module docstring).
 
         ``adaptive_q=False`` uses the base step q0 (HAC's phase 3001..10000).
         ``rate_rows`` ([S] indices or [N] bool): bits are computed for these anchors only and
         returned as [S] (the rate loss uses a ~5% sample; the likelihood of the other 95% would
         be computed and thrown away). Default: all anchors, [N].
+        ``decoder_quant`` (training only): the returned values, which the decoder sees, are
+        ``x + U(-.5,.5) Q`` ("noise", HAC) or the rounded values of evaluation with a
+        straight-through gradient ("ste", :func:`baseline.hac.quant.ste_round_q`); the bits are
+        estimated on the noisy values either way.
         """
+        if decoder_quant not in ("noise", "ste"):
+            raise ValueError(f"decoder_quant must be 'noise' or 'ste', got {decoder_quant!r}")
         n = xyz.shape[0]
         self._check_values(values, n)
         if rate_rows is not None and rate_rows.dtype == torch.bool:
@@ -199,6 +207,8 @@ class EntropyModel(nn.Module):
                 b = gaussian_bits(x_hat, mean, scale, q)
             if m is not None:
                 b = b * m.to(b.dtype)
+            if training and decoder_quant == "ste":
+                x_hat = ste_round_q(x, q)
             values_hat[a.name] = x_hat
             bits[a.name] = b.sum(dim=-1)
         return values_hat, bits

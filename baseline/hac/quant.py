@@ -7,7 +7,10 @@
   never divides by zero (HAC would produce NaN there);
 * training: additive uniform noise ``x + U(-0.5, 0.5) * Q``;
 * evaluation / coding: values clamped to ``mean(x) +- 15000 Q`` then ``round(x / Q) * Q`` with a
-  straight-through gradient (identity, also through the clamp, as HAC).
+  straight-through gradient (identity, also through the clamp, as HAC);
+* training with ``entropy.decoder_quant = "ste"`` (not HAC's default): the decoder sees the
+  rounded values of evaluation (:func:`ste_round_q`), the rate is still estimated on the noisy
+  ones. See :func:`ste_round_q` for why.
 """
 from __future__ import annotations
 
@@ -52,3 +55,52 @@ def ste_round(x: torch.Tensor, q, x_mean: Optional[torch.Tensor] = None) -> torc
         x_mean = x.detach().mean() if x.numel() else torch.zeros((), dtype=x.dtype, device=x.device)
     x_mean = torch.as_tensor(x_mean, dtype=x.dtype, device=x.device).detach()
     return _STERound.apply(x, q, x_mean)
+
+
+class _STERoundQ(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, x, q, x_mean):
+        lo = x_mean - CLAMP_STEPS * q
+        hi = x_mean + CLAMP_STEPS * q
+        xq = torch.round(torch.maximum(torch.minimum(x, hi), lo) / q) * q
+        ctx.save_for_backward(x, q, xq)
+        return xq
+
+    @staticmethod
+    def backward(ctx, grad):
+        x, q, xq = ctx.saved_tensors
+        gq = None
+        if ctx.needs_input_grad[1]:
+            # d/dq of x + q * e with e = (xq - x) / q held constant: the rounding error in steps
+            gq = grad * (xq - x) / q
+            while gq.dim() > q.dim():
+                gq = gq.sum(0)
+            for d, n in enumerate(q.shape):
+                if n == 1 and gq.shape[d] != 1:
+                    gq = gq.sum(d, keepdim=True)
+        return grad, gq, None
+
+
+def ste_round_q(x: torch.Tensor, q: torch.Tensor, x_mean: Optional[torch.Tensor] = None) -> torch.Tensor:
+    """The values :func:`ste_round` gives (what evaluation and the decoder see), for training.
+
+    Gradients: identity to ``x`` (straight through) and, to the step ``q``, the rounding error in
+    steps ``(round(x/q) q - x) / q``: the value is written ``x + q e`` with ``e`` held constant, as
+    the noise proxy ``x + q u`` gives ``u`` (without it, nothing but the rate would move an
+    adaptive step, and every step would grow to its maximum).
+
+    Why (``entropy.decoder_quant = "ste"``): with HAC's proxy the decoder MLPs are trained on
+    ``x + U(-0.5, 0.5) q``. Each render draws new noise, and a pixel averages many Gaussians, so
+    the noise dithers: a feature at ``0.3 q`` still shifts the decoded Gaussians on average, and
+    training learns to carry information below the quantization step, which rounding then
+    deletes. Measured on the synthetic scene at 6k iterations, lambda 0.004 (HAC, mask loss
+    off): raw features 37.81 dB, features with fresh noise 37.45-37.51 dB, rounded features
+    34.12 dB (74% of the features lie within half a step of zero). Training the decoder on the
+    rounded values while the likelihood keeps the noise is the usual remedy in learned
+    compression ("mixed" quantization, Minnen & Singh 2020).
+    """
+    q = torch.as_tensor(q, dtype=x.dtype, device=x.device)
+    if x_mean is None:
+        x_mean = x.detach().mean() if x.numel() else torch.zeros((), dtype=x.dtype, device=x.device)
+    x_mean = torch.as_tensor(x_mean, dtype=x.dtype, device=x.device).detach()
+    return _STERoundQ.apply(x, q, x_mean)

@@ -191,7 +191,8 @@ class Trainer:
             cam = cam_r
         res = render_view(self.model, cam, self.background, phase=self.phase, training=True,
                           entropy=self.entropy, rate_sample=cfg.entropy.rate_sample,
-                          backend=cfg.train.rasterizer, generator=self.step_generator)
+                          backend=cfg.train.rasterizer, generator=self.step_generator,
+                          decoder_quant=cfg.entropy.decoder_quant)
         g, out = res.gaussians, res.render
         if out.means2d.requires_grad:
             out.means2d.retain_grad()
