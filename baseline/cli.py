@@ -98,6 +98,19 @@ def cmd_eval(args) -> int:
     return 0
 
 
+def cmd_quant_cost(args) -> int:
+    from baseline.eval.quantcost import format_rows, quantization_cost
+    from baseline.run import load_run, write_json_atomic
+
+    trainer, scene = load_run(args.run, device=args.device)
+    cams = scene.test_cameras if args.split == "test" else scene.train_cameras
+    rows = quantization_cost(trainer, scene, cams or scene.train_cameras, seed=args.seed)
+    print(f"{args.run}: {len(cams or scene.train_cameras)} {args.split} views")
+    print(format_rows(rows))
+    write_json_atomic(Path(args.run) / "quant_cost.json", {"split": args.split, "rows": rows})
+    return 0
+
+
 def cmd_render(args) -> int:
     from baseline.run import Renderable
 
@@ -313,6 +326,14 @@ def main(argv=None) -> int:
     p.add_argument("--lpips-weights", default=None, help="LPIPS weights file (else unavailable)")
     p.add_argument("--device", default=None, help=DEVICE_HELP)
     p.set_defaults(fn=cmd_eval)
+
+    p = sub.add_parser("quant-cost", help="PSNR of a trained run with each coded attribute raw, "
+                       "rounded (as coded) or noised (as HAC trains): where its quantization loss comes from")
+    p.add_argument("run", help="run folder (trained into HAC's adaptive phase)")
+    p.add_argument("--split", choices=["test", "train"], default="test")
+    p.add_argument("--seed", type=int, default=0, help="seed of the noise draws")
+    p.add_argument("--device", default=None, help=DEVICE_HELP)
+    p.set_defaults(fn=cmd_quant_cost)
 
     p = sub.add_parser("render", help="render the views of a run folder or a .pgs file to PNG")
     p.add_argument("target")

@@ -167,3 +167,35 @@ def test_truncated_and_flipped_files_name_the_section(encoded, tmp_path):
         with pytest.raises(BitstreamError, match=name.replace(".", r"\.")):
             decode_model(p)
         offset += len(blob)
+
+
+def test_quant_cost_all_rounded_is_the_decoded_file(encoded, scene):
+    """`pgs quant-cost`: its 'all rounded' row renders what the file decodes to (same PSNR as
+    the decoded .pgs), every coded attribute gets a rounded and a noise row, the noise rows
+    repeat with the seed, and the model is left as it was."""
+    from baseline.eval.quantcost import format_rows, quantization_cost
+
+    t = encoded["trainer"]
+    xyz = t.model.xyz.detach().clone()
+    rows = quantization_cost(t, scene, scene.test_cameras, seed=1, backend="cpu")
+    names = [a.name for a in t.model.coded_attributes()]
+    assert [r["variant"] for r in rows] == (["raw"] + [f"{k} rounded" for k in names]
+                                           + ["all rounded"] + [f"{k} noise" for k in names])
+    dec = decode_model(encoded["path"])
+    post = evaluate(dec.model, scene, scene.test_cameras, phase="decoded", backend="cpu")
+    by = {r["variant"]: r for r in rows}
+    assert abs(by["all rounded"]["psnr"] - post["psnr"]) < 1e-3
+    assert torch.equal(t.model.xyz.detach(), xyz) and t.model.fixed_values is None
+    again = quantization_cost(t, scene, scene.test_cameras, seed=1, backend="cpu")
+    assert [r["psnr"] for r in again] == [r["psnr"] for r in rows]
+    assert "all rounded" in format_rows(rows)
+
+
+def test_quant_cost_refuses_a_run_that_codes_nothing(scene, tmp_path):
+    from baseline.eval.quantcost import quantization_cost
+
+    cfg = build_config(["demo", "scaffold"], ["train.iterations=5", "train.threads=1"])
+    t = Trainer(cfg, scene, tmp_path / "r", progress=False)
+    t.train()
+    with pytest.raises(ValueError, match="adaptive phase"):
+        quantization_cost(t, scene)
