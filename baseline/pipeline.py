@@ -76,7 +76,7 @@ def render_view(model, cam: Camera, background: torch.Tensor, *, phase: str = "n
     attrs = {a.name: a for a in model.coded_attributes()}
     if phase == "noise":
         if training and decoder_quant == "ste":
-            values = {k: ste_round(v, attrs[k].q0) for k, v in values.items()}
+            values = {k: ste_round(v, attrs[k].q0, q0=attrs[k].q0) for k, v in values.items()}
         elif training:
             values = {k: v + (uniform(v.shape, generator, v.device) - 0.5) * attrs[k].q0
                       for k, v in values.items()}

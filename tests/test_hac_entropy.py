@@ -487,3 +487,40 @@ def test_decoder_quant_ste_rounds_what_the_decoder_sees_and_keeps_the_noisy_rate
         last = m.mlp[-1]
         adj_rows = last.weight.grad[-len(ATTRS):]            # the Q-adjustment outputs
         assert adj_rows.abs().sum() > 0
+
+
+def test_tiny_steps_do_not_clip_the_values():
+    """When the adaptive steps collapse (lambda = 0: nothing pushes them up), HAC's clamp to
+    mean +- 15000 Q would cut the values themselves; with the base step the clamp is
+    mean +- 15000 max(Q, q0): the values decode to within a (tiny) step, exactly, through the
+    escapes, and the evaluation path gives the same values. Steps >= q0 keep HAC's clamp."""
+    from baseline.hac.quant import clamp_halfwidth, ste_round_q
+
+    x = torch.tensor([0.0, 0.0, 0.3, -0.2], dtype=torch.float64)
+    tiny = torch.tensor(1e-9, dtype=torch.float64)
+    assert abs(ste_round(x, tiny)[2] - x.mean()) < 2e-5      # HAC's clamp: 0.3 -> mean + 1.5e-5
+    assert ste_round(x, tiny, q0=0.001)[2] == pytest.approx(0.3, abs=1e-9)
+    assert ste_round_q(x, tiny, q0=0.001)[3] == pytest.approx(-0.2, abs=1e-9)
+    q = torch.tensor([0.5, 2.0], dtype=torch.float64)
+    assert torch.equal(clamp_halfwidth(q, 1.0), torch.tensor([15000.0, 30000.0], dtype=torch.float64))
+    assert torch.equal(clamp_halfwidth(q), 15000 * q)
+
+    m = make_hac()
+    with torch.no_grad():                                     # every Q adjustment -> -inf
+        m.mlp[-1].bias[-len(ATTRS):] = -50.0
+        m.mlp[-1].weight[-len(ATTRS):] = 0.0
+    n = 200
+    g = torch.Generator().manual_seed(4)
+    xyz = torch.rand(n, 3, generator=g) * 2 - 1
+    vals = {"feat": torch.randn(n, 50, generator=g), "scaling": torch.rand(n, 6, generator=g) * 0.05,
+            "offsets": torch.randn(n, 30, generator=g) * 0.3}
+    mask = (torch.rand(n, 10, generator=g) < 0.5).float()
+    blobs, vq = m.compress(xyz, vals, mask, return_values=True)
+    dec = m.decompress(xyz, blobs, mask)
+    on = mask.repeat_interleave(3, dim=1) > 0
+    for a in ATTRS:
+        assert torch.equal(dec[a.name], vq[a.name])
+        want = torch.where(on, vals[a.name], 0) if a.name == "offsets" else vals[a.name]
+        assert torch.allclose(vq[a.name], want, atol=1e-5), a.name
+    ev, _ = m(xyz, vals, mask, training=False)
+    assert torch.allclose(ev["scaling"], vals["scaling"], atol=1e-5)

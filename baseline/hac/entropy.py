@@ -61,7 +61,7 @@ from baseline.codec.rangecoder import (DEFAULT_ESCAPE_LIMIT, GaussianStreamDecod
 from baseline.codec.weights import pack_state_dict, round_module_, unpack_state_dict
 from baseline.hac.exact import ExactMLP, det_exp, det_tanh
 from baseline.hac.hashgrid import FEATURE_BITS, BinaryHashGrid
-from baseline.hac.quant import (CLAMP_STEPS, Q_FLOOR, adaptive_q, noise_quantize, ste_round,
+from baseline.hac.quant import (Q_FLOOR, adaptive_q, clamp_halfwidth, noise_quantize, ste_round,
                                 ste_round_q)
 
 LIKELIHOOD_FLOOR = 1e-6
@@ -198,7 +198,7 @@ class EntropyModel(nn.Module):
             q = q_all[a.name]
             if not adaptive_q:
                 q = torch.full_like(q, a.q0)
-            x_hat = noise_quantize(x, q) if training else ste_round(x, q)
+            x_hat = noise_quantize(x, q) if training else ste_round(x, q, q0=a.q0)
             m = self.value_mask(a, gauss_mask, n, device=x.device)
             if rate_rows is not None:
                 b = gaussian_bits(x_hat[rate_rows], mean, scale, q[rate_rows])
@@ -208,7 +208,7 @@ class EntropyModel(nn.Module):
             if m is not None:
                 b = b * m.to(b.dtype)
             if training and decoder_quant == "ste":
-                x_hat = ste_round_q(x, q)
+                x_hat = ste_round_q(x, q, q0=a.q0)
             values_hat[a.name] = x_hat
             bits[a.name] = b.sum(dim=-1)
         return values_hat, bits
@@ -296,8 +296,9 @@ class EntropyModel(nn.Module):
 
                     if encode:
                         x = xs[a.name][s:e].to(torch.float64)
-                        lo = x_means[a.name] - CLAMP_STEPS * q
-                        hi = x_means[a.name] + CLAMP_STEPS * q
+                        half = clamp_halfwidth(q, a.q0)
+                        lo = x_means[a.name] - half
+                        hi = x_means[a.name] + half
                         k = torch.round(torch.maximum(torch.minimum(x, hi), lo) / q)
                         if emit:
                             coders[a.name].add(pick(k - c).astype(np.int64), pick(mu_s), pick(sd_s))
