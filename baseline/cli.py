@@ -254,11 +254,11 @@ def cmd_compare(args) -> int:
     if args.iterations:
         sets.append(f"train.iterations={args.iterations}")
     try:
-        run_compare(args.scene, args.out, vs=args.vs, lambdas=args.lambdas,
-                    common_patches=args.patch, sets=sets, lpips_weights=args.lpips_weights,
-                    progress=not args.no_progress, plots=not args.no_plots, only=args.only,
-                    remeasure=args.remeasure, report_only=args.report_only,
-                    reference=args.reference)
+        results = run_compare(args.scene, args.out, vs=args.vs, lambdas=args.lambdas,
+                              common_patches=args.patch, sets=sets,
+                              lpips_weights=args.lpips_weights, progress=not args.no_progress,
+                              plots=not args.no_plots, only=args.only, remeasure=args.remeasure,
+                              report_only=args.report_only, reference=args.reference)
     except KeyboardInterrupt:
         print(f"\ninterrupted: finished stages are kept in {args.out}; run the same command "
               f"again to resume", file=sys.stderr)
@@ -266,7 +266,7 @@ def cmd_compare(args) -> int:
     if args.archive:
         from baseline.eval.compare import archive_records
 
-        kept = archive_records(args.out, args.archive)
+        kept = archive_records(args.out, args.archive, results)
         print(f"archived the records of {len(kept)} finished run(s) and the report to {args.archive}")
     return 0
 
@@ -412,7 +412,8 @@ def main(argv=None) -> int:
                         "(e.g. 'scaffold'): PSNR change and 'x smaller' than its float32 model; "
                         "'--only reference' trains just it")
     p.add_argument("--archive", metavar="DIR", default=None,
-                   help="afterwards, copy the finished runs' records and the report to DIR "
+                   help="afterwards, copy the records of the finished runs this report shows (and its "
+                        "reference) and the report to DIR "
                         "(no checkpoints or model files; copy them back into an --out folder "
                         "to report those runs without retraining)")
     _config_args(p)

@@ -1,6 +1,7 @@
 """`pgs compare` end to end on a tiny scene: an interrupted comparison resumes without redoing
 finished work, the entropy-model swap gives two comparable rows, the report lists them."""
 import json
+import shutil
 from pathlib import Path
 
 import pytest
@@ -238,7 +239,13 @@ def test_archived_records_are_reported_without_retraining(scene, tmp_path):
     base = first["runs"][0]
     # archive: keep the records only, in a new comparison folder
     arch = tmp_path / "archive"
-    kept = archive_records(out, arch)
+    # another comparison's finished run sharing the folder: kept only when nothing says which
+    # runs this comparison reported
+    other = out / "runs" / "other-comparison-l0.004-000000000000"
+    shutil.copytree(base["run_dir"], other)
+    assert other.name in [p.name for p in archive_records(out, tmp_path / "everything")]
+    shutil.rmtree(tmp_path / "everything")
+    kept = archive_records(out, arch, first)
     assert [p.name for p in kept] == [first["runs"][0]["run_dir"].split("/")[-1]]
     assert sorted(f.name for f in kept[0].iterdir()) == sorted(RECORD_FILES)
     assert (arch / "report.md").exists() and (arch / "results.json").exists()
@@ -307,7 +314,7 @@ def test_reference_measures_every_run_against_the_uncompressed_model(scene, tmp_
     assert reference_table({**full, "reference": None}) is None
 
     arch = tmp_path / "archive"
-    kept = archive_records(out, arch)
+    kept = archive_records(out, arch, full)
     assert spec.dir.name in [p.name for p in kept]
     part = run_compare(scene, arch, vs=["predict-gs"], reference="scaffold", report_only=True, **kw)
     assert part["reference"]["records_only"] and part["reference"]["psnr"] == ref["psnr"]

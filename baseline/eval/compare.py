@@ -440,16 +440,25 @@ def make_row(spec: RunSpec, res: dict, record: dict) -> dict:
 RECORD_FILES = ("config.toml", "scene.json", "results.json", RECORD)
 
 
-def archive_records(out: str | Path, dest: str | Path) -> list[Path]:
+def archive_records(out: str | Path, dest: str | Path,
+                    results: Optional[dict] = None) -> list[Path]:
     """Copy the records of the finished runs of comparison ``out`` (and its report, results
     and plots) to ``dest``: a few KB per run, no checkpoints or model files. Copied into another
     comparison's ``--out`` folder they are reported as finished (see :func:`records_only`).
+    ``results``: the dict :func:`run_compare` returned; when given, only the runs it reports
+    (and its reference) are kept, not other comparisons' runs that share ``out``.
     Returns the run folders archived."""
     import shutil
 
     out, dest = Path(out), Path(dest)
+    keep = None
+    if results is not None:
+        rows = list(results["runs"]) + ([results["reference"]] if results.get("reference") else [])
+        keep = {Path(r["run_dir"]).name for r in rows}
     done = []
     for run in sorted((out / "runs").glob("*")) if (out / "runs").is_dir() else []:
+        if keep is not None and run.name not in keep:
+            continue                       # another comparison's run sharing this folder
         rec = _read_json(run / RECORD)
         res = _read_json(run / "results.json")
         if not ("test" in res and (rec.get("encode") and rec.get("decoded")
