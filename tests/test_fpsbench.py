@@ -183,3 +183,35 @@ def test_frame_bench_times_each_stage_against_its_reference_form(files, capsys):
     assert main(["bench", "frame", "--run", str(files["predict-gs"]), "--rounds", "1",
                  "--views", "1", "--threads", "1"]) == 0
     assert "reference form" in capsys.readouterr().out
+
+
+def test_gpu_fps_tool_exports_cameras_and_times_at_each_scale(files, tmp_path):
+    """tools/gpu_fps.py (for machines without the scene): the exported cameras are the test
+    views of the file's scene; the bench decodes once and times every model at each scale."""
+    import importlib.util
+    import json
+    from pathlib import Path
+
+    spec = importlib.util.spec_from_file_location(
+        "gpu_fps", Path(__file__).resolve().parents[1] / "tools" / "gpu_fps.py")
+    tool = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(tool)
+    cams_file = tmp_path / "cams.pt"
+    tool.export(str(files["baseline"]), str(cams_file))
+    blob = torch.load(cams_file, weights_only=True)
+    test = load_scene(files["scene"]).test_cameras
+    assert [c["name"] for c in blob["cameras"]] == [c.name for c in test]
+    assert torch.equal(blob["cameras"][0]["viewmat"], test[0].viewmat)
+    torch.set_num_threads(1)
+    tool.bench(str(cams_file), [str(files["baseline"] / "model.pgs"),
+                                str(files["predict-gs"] / "model.pgs")],
+               "cpu", 1, [1, 2], str(tmp_path / "fps.json"))
+    res = json.loads((tmp_path / "fps.json").read_text())
+    assert [r["scale"] for r in res] == [1, 2]
+    w, h = test[0].width, test[0].height
+    assert f"{w}x{h} (scale 1)" in res[0]["protocol"]
+    assert f"{2 * w}x{2 * h} (scale 2)" in res[1]["protocol"]
+    for r in res:
+        assert [row["label"] for row in r["rows"]] == ["baseline", "predict-gs",
+                                                      "predict-gs (no cache)"]
+        assert r["rows"][0]["ratio"] == 1.0 and all(row["fps"] > 0 for row in r["rows"])

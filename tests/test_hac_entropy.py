@@ -255,7 +255,9 @@ def test_round_trip_in_subprocess_with_other_threads(tmp_path):
         assert all(torch.equal(out[k], d["vq"][k]) for k in out), "mismatch"
         print("EXACT")
     """)
-    env = dict(os.environ, PYTHONPATH=os.getcwd(), OMP_NUM_THREADS="2")
+    # the checkout first, the caller's own PYTHONPATH kept (where dependencies may live)
+    path = os.pathsep.join(p for p in (os.getcwd(), os.environ.get("PYTHONPATH", "")) if p)
+    env = dict(os.environ, PYTHONPATH=path, OMP_NUM_THREADS="2")
     r = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=env, timeout=300)
     assert r.returncode == 0 and "EXACT" in r.stdout, r.stderr[-2000:]
 

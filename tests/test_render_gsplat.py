@@ -119,7 +119,9 @@ def test_gsplat_matches_cpu():  # pragma: no cover - GPU only
     w = torch.randn(48, 64, 3, generator=torch.Generator().manual_seed(2))
     outs, grads = [], []
     for backend, dev in (("cpu", "cpu"), ("gsplat", "cuda")):
-        leaves = [t.to(dev).requires_grad_(True) for t in ts]
+        # fresh leaves on each device (t.to('cpu') would return t itself, and after that
+        # t.to('cuda') would be a non-leaf copy whose .grad stays None)
+        leaves = [t.detach().to(dev).clone().requires_grad_(True) for t in ts]
         out = rasterize(*leaves, cam, backend=backend)
         out.means2d.retain_grad()  # a no-op on gsplat's leaf; the CPU backend's is not a leaf
         (out.image * w.to(dev)).sum().backward()

@@ -1,0 +1,65 @@
+#!/usr/bin/env bash
+# The checks of one lent-GPU session, in one call of the workplace's device tool (the machine
+# has no network and gets only the repository: see README "On a lent GPU").
+#
+# Prepared here, in git-ignored .carry/ (listed in .git/info/exclude):
+#   .carry/site.tar.xz        cp312 x86-64 installs of gsplat, constriction, pycolmap,
+#                             OpenImageIO, tomli-w (pip install --target ... --python-version
+#                             3.12, tarred under devsite/); the machine has torch, numba, scipy,
+#                             scikit-image, pytest and hypothesis
+#   .carry/models/*.pgs       decoded-model files to time (first = the reference of the ratios)
+#   .carry/cams.pt            their test cameras (python tools/gpu_fps.py export FILE -o ...)
+# Run there:  bash tools/device_check.sh [SECONDS_FOR_THE_FULL_SUITE]
+set -uo pipefail
+export PYTHONUNBUFFERED=1
+OUT=${OUT:-/tmp/pgs-device-out}
+mkdir -p "$OUT"
+SUITE_S=${1:-150}
+t0=$(date +%s)
+stamp() { echo "[$(( $(date +%s) - t0 )) s] $*"; }
+
+nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv | tee "$OUT/gpu.txt"
+python3 -c "import torch; print('torch', torch.__version__, 'cuda', torch.version.cuda)" \
+    | tee -a "$OUT/gpu.txt"
+nproc | tee -a "$OUT/gpu.txt"
+
+tar -xJf .carry/site.tar.xz -C /tmp || exit 1
+SITE=/tmp/devsite
+# The project itself, registered for importlib.metadata (its plugin is an entry point).
+d=$SITE/predict_gs_toolkit-0.1.0.dist-info
+mkdir -p "$d"
+printf 'Metadata-Version: 2.1\nName: predict-gs-toolkit\nVersion: 0.1.0\n' >"$d/METADATA"
+printf '[pgs.plugins]\npredict = predict_plugin:register\n\n[console_scripts]\npgs = baseline.cli:main\n' \
+    >"$d/entry_points.txt"
+export PYTHONPATH=$SITE:$PWD
+export OMP_NUM_THREADS=$(nproc) NUMBA_NUM_THREADS=$(nproc)
+stamp "unpacked"
+
+# gsplat's CUDA extension, ahead of time (its wheel would JIT-compile on first use)
+TORCH_CUDA_ARCH_LIST=9.0 MAX_JOBS=$(nproc) python3 tools/build_gsplat_ext.py $SITE/gsplat \
+    >"$OUT/build.log" 2>&1
+stamp "gsplat build rc=$?"
+python3 -c "from gsplat import csrc; import gsplat; print('gsplat', gsplat.__version__, csrc.__file__)" \
+    2>&1 | tail -2
+
+# the CUDA tests (skipped on the CPU machine) and the gsplat rasterizer tests
+python3 -m pytest -q -rs -p no:cacheprovider tests/test_cuda.py tests/test_render_gsplat.py \
+    >"$OUT/cuda-tests.log" 2>&1
+stamp "cuda tests rc=$?"
+tail -5 "$OUT/cuda-tests.log"
+
+# decoded-model FPS, one process, rotated rounds; at the trained size and at 4x
+runs=()
+for f in .carry/models/*.pgs; do runs+=(--run "$f"); done
+if [ ${#runs[@]} -gt 0 ] && [ -f .carry/cams.pt ]; then
+    python3 tools/gpu_fps.py bench --cams .carry/cams.pt "${runs[@]}" --device cuda \
+        --rounds 10 --scale 1 --scale 4 --json "$OUT/fps.json" >"$OUT/fps.log" 2>&1
+    stamp "fps bench rc=$?"
+fi
+
+# the whole suite with the GPU present (tests with device 'auto' take the CUDA path), capped
+timeout "$SUITE_S" python3 -m pytest -q -p no:cacheprovider -x tests >"$OUT/suite.log" 2>&1
+stamp "full suite rc=$? (124 = stopped at ${SUITE_S} s)"
+tail -3 "$OUT/suite.log"
+echo "==== fps"
+cat "$OUT/fps.log" 2>/dev/null | grep -v Warning

@@ -1,0 +1,112 @@
+"""Decoded-model FPS on a machine that does not hold the scene (a lent GPU).
+
+``pgs bench fps`` loads the test views from the scene named in each file's header; a lent GPU
+machine receives only the repository (64 MiB), not ``../shared/data``. This tool splits the job:
+
+    # here, where the scene is: the test cameras of the files' scene, a few KB
+    python tools/gpu_fps.py export RUN_OR_FILE.pgs -o cams.pt
+    # there: the same one-process bench (baseline.eval.fpsbench.run_fps_bench: decode every
+    # file, rotate the order every round, median over rounds, ratios to the first file)
+    python tools/gpu_fps.py bench --cams cams.pt --run A.pgs --run B.pgs --device cuda [--scale 1 --scale 4]
+
+``--scale k`` renders every view at k times its width and height (intrinsics scaled alike): the
+same Gaussians at a higher image resolution, e.g. truck models trained at ``-r 4`` timed at the
+capture's own size. Those frames are not the trained protocol (the Gaussians were fitted to the
+small images); only their cost is measured.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from dataclasses import replace
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from baseline.camera import Camera  # noqa: E402
+
+
+def export(src: str, out: str) -> None:
+    from baseline.codec.model_codec import decode_model
+    from baseline.eval.fpsbench import resolve_model_file
+    from baseline.run import load_scene_for
+
+    dec = decode_model(resolve_model_file(src))
+    sc = load_scene_for(dec.cfg, dec.scene_path, progress=False)
+    cams = list(sc.test_cameras or sc.train_cameras)
+    torch.save({"scene": str(dec.scene_path), "background": sc.background.float(),
+                "cameras": [dict(viewmat=c.viewmat, fx=c.fx, fy=c.fy, cx=c.cx, cy=c.cy,
+                                 width=c.width, height=c.height, near=c.near, far=c.far,
+                                 name=c.name, index=c.index) for c in cams]}, out)
+    print(f"wrote {len(cams)} cameras ({cams[0].width}x{cams[0].height}) of {dec.scene_path} "
+          f"to {out}")
+
+
+def bench(cams_file: str, runs, device: str, rounds: int, scales, out_json: str | None,
+          backend: str = "auto") -> None:
+    from baseline.codec.model_codec import decode_model
+    from baseline.device import device_name, resolve_device
+    from baseline.eval.fpsbench import contenders_of, resolve_model_file, run_fps_bench
+    from baseline.render import resolve_backend
+
+    blob = torch.load(cams_file, weights_only=True)
+    cams0 = [Camera(**c) for c in blob["cameras"]]
+    dev = resolve_device(device)
+    contenders, seen = [], set()
+    for p in runs:              # decoded once (CPU codec), timed at every scale
+        f = resolve_model_file(p)
+        dec = decode_model(f)
+        dec.model.to(dev)
+        label = f.parent.name if f.stem == "model" else f.stem   # a run folder's model.pgs
+        while label in seen:
+            label += "'"
+        seen.add(label)
+        contenders += contenders_of(label, dec.model)
+    bg = blob["background"].to(dev)
+    used = resolve_backend(backend, contenders[0].model.xyz)
+    results = []
+    for k in scales:
+        cams = [replace(c, fx=c.fx * k, fy=c.fy * k, cx=c.cx * k, cy=c.cy * k,
+                        width=c.width * k, height=c.height * k) for c in cams0]
+        rows = run_fps_bench(contenders, cams, bg, rounds=rounds, backend=backend)
+        head = (f"{len(cams)} views at {cams[0].width}x{cams[0].height} (scale {k}), "
+                f"{device_name(dev)}, backend {used}, {rounds} rounds")
+        print(head)
+        print(f"{'model':58s} {'Gauss/view':>10s} {'FPS':>8s} {'ratio':>6s} {'(min-max)':>13s}")
+        for r in rows:
+            print(f"{r['label']:58s} {r['gaussians_per_view']:10.0f} {r['fps']:8.1f} "
+                  f"{r['ratio']:6.3f} ({r['ratio_min']:.3f}-{r['ratio_max']:.3f})")
+        results.append(dict(protocol=head, scale=k, rows=rows))
+    if out_json:
+        Path(out_json).write_text(json.dumps(results, indent=2))
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    sub = ap.add_subparsers(dest="cmd", required=True)
+    e = sub.add_parser("export", help="write the test cameras of a file's scene")
+    e.add_argument("src")
+    e.add_argument("-o", "--out", required=True)
+    b = sub.add_parser("bench", help="time decoded files on exported cameras")
+    b.add_argument("--cams", required=True)
+    b.add_argument("--run", action="append", required=True)
+    b.add_argument("--device", default="auto")
+    b.add_argument("--rounds", type=int, default=10)
+    b.add_argument("--scale", type=int, action="append",
+                   help="render at k x the trained size (repeatable; default 1)")
+    b.add_argument("--json")
+    b.add_argument("--backend", default="auto",
+                   help="rasterizer (auto: gsplat for CUDA tensors; the files' own setting is "
+                        "ignored: the cpu preset pins the numba backend)")
+    a = ap.parse_args()
+    if a.cmd == "export":
+        export(a.src, a.out)
+    else:
+        bench(a.cams, a.run, a.device, a.rounds, a.scale or [1], a.json, a.backend)
+
+
+if __name__ == "__main__":
+    main()
