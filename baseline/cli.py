@@ -132,10 +132,12 @@ def cmd_encode(args) -> int:
               f"'{trainer.phase}'); the file is coded with an untrained context model")
     scene_path = json.loads((Path(args.run) / "scene.json").read_text())["path"]
     cfg = trainer.cfg
-    if args.weights and args.weights != cfg.codec.weight_dtype:
+    codec_over = {k: v for k, v in (("weight_dtype", args.weights), ("positions", args.positions))
+                  if v and v != getattr(cfg.codec, k)}
+    if codec_over:              # a file of the run coded differently: not recorded with the run
         import dataclasses
 
-        cfg = dataclasses.replace(cfg, codec=dataclasses.replace(cfg.codec, weight_dtype=args.weights))
+        cfg = dataclasses.replace(cfg, codec=dataclasses.replace(cfg.codec, **codec_over))
     st = encode_model(cfg, trainer.model, trainer.entropy, args.output,
                       extra_header={"scene": scene_path})
     print(format_info(file_info(args.output)))
@@ -348,6 +350,9 @@ def main(argv=None) -> int:
     p.add_argument("-o", "--output", required=True)
     p.add_argument("--weights", choices=["float32", "float16"], default=None,
                    help="network weight precision in the file (default: the run's codec.weight_dtype)")
+    p.add_argument("--positions", choices=["raw16", "sorted"], default=None,
+                   help="anchor positions: raw 16-bit (HAC) or coded losslessly as a set "
+                        "(default: the run's codec.positions)")
     p.add_argument("--rate-check", action="store_true",
                    help="print the training loss's bit estimate beside the bytes written, per section")
     p.set_defaults(fn=cmd_encode)

@@ -150,9 +150,15 @@ class EntropyConfig:
     grid: GridConfig = field(default_factory=GridConfig)
 
 
+POSITION_CODINGS = ("raw16", "sorted")
+
+
 @dataclass
 class CodecConfig:
     weight_dtype: str = "float32"        # float32 | float16
+    # anchor positions in the file: raw16 (HAC's and the paper's 48 bits per anchor) | sorted
+    # (the same 16-bit values coded losslessly as a set: baseline/codec/positions.py)
+    positions: str = "raw16"
 
 
 @dataclass
@@ -321,6 +327,9 @@ def validate(cfg: Config) -> None:
                           f"'{cfg.entropy.decoder_quant}'")
     if cfg.codec.weight_dtype not in ("float32", "float16"):
         raise ConfigError(f"codec.weight_dtype must be float32 or float16, got '{cfg.codec.weight_dtype}'")
+    if cfg.codec.positions not in POSITION_CODINGS:
+        raise ConfigError(f"codec.positions must be one of {', '.join(POSITION_CODINGS)}, "
+                          f"got '{cfg.codec.positions}'")
 
 
 # ----------------------------------------------------------------------------- serialization
@@ -379,7 +388,8 @@ EXECUTION_KEYS = (("train", "device"),)
 # finished run (and its archived records) under a new hash.
 LATER_KEYS = {("lr", "mask_schedule_scaled"): False,
               ("densify", "clamp_scaling_to_end"): False,
-              ("entropy", "decoder_quant"): "noise"}
+              ("entropy", "decoder_quant"): "noise",
+              ("codec", "positions"): "raw16"}
 
 
 def config_hash(cfg: Config) -> str:

@@ -126,6 +126,15 @@ def test_hash_of_finished_runs_survives_new_options():
     ste = build_config(["cpu", "demo", "quant-ste"], ["entropy.lmbda=0.004"])
     assert ("entropy", "decoder_quant") in LATER_KEYS and ste.entropy.decoder_quant == "ste"
     assert config_hash(ste) not in archived
+    srt = build_config(["cpu", "demo", "positions-sorted"], ["entropy.lmbda=0.004"])
+    assert ("codec", "positions") in LATER_KEYS and srt.codec.positions == "sorted"
+    assert config_hash(srt) not in archived
+
+
+def test_position_coding_is_validated():
+    assert build_config([]).codec.positions == "raw16"      # HAC's layout by default
+    with pytest.raises(ConfigError, match="codec.positions"):
+        build_config([], ["codec.positions=octree"])
 
 
 def test_decoder_quant_is_validated():

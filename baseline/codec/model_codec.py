@@ -1,7 +1,10 @@
 """Encode a trained anchor model into one self-contained ``.pgs`` file, decode it back.
 
 Sections (each with length + CRC32 in the container, DESIGN.md "Bitstream"):
-    positions            uint16 [N,3] anchor positions (16-bit, HAC's widened bounds in header)
+    positions            anchor positions, 16-bit (HAC's widened bounds in the header): raw
+                         uint16 [N,3] (codec.positions = "raw16", HAC's layout) or coded as a
+                         set ("sorted", baseline/codec/positions.py; the anchors of every other
+                         section then follow the positions' Morton order)
     masks                Bernoulli-coded Gaussian masks [N,K] (one global p)
     em.grid / em.mlp     the entropy model (binary hash grid, context MLP + grid bounds)
     decoder.weights      the opacity / covariance / colour MLPs
@@ -29,6 +32,7 @@ import torch
 import torch.nn as nn
 
 from baseline.codec.container import BitstreamError, read_container, write_container
+from baseline.codec.positions import decode_positions, encode_positions
 from baseline.codec.rangecoder import (anchor_bounds, bernoulli_counts, decode_bernoulli,
                                        dequantize_positions, encode_bernoulli, pack_positions,
                                        quantize_positions, unpack_positions)
@@ -119,9 +123,18 @@ def encode_model(cfg, model, entropy, path: str | Path, extra_header: Optional[d
     xyz = model.xyz.detach()[idx]
     lo, hi = anchor_bounds(xyz.cpu().numpy())
     q = quantize_positions(xyz.cpu().numpy(), lo, hi)
+    coding = cfg.codec.positions
+    if coding == "sorted":        # the anchors are coded in the order the positions decode in
+        pos_blob, order = encode_positions(q)
+        order_t = torch.from_numpy(order).to(idx.device)
+        idx, q = idx[order_t], q[order]
+    elif coding == "raw16":
+        pos_blob = pack_positions(q)
+    else:
+        raise ValueError(f"codec.positions: unknown coding {coding!r}")
     xyz_q = torch.from_numpy(dequantize_positions(q, lo, hi))
     gmask = (torch.sigmoid(model.per_anchor["mask"].detach()[idx][..., 0]) > model.mask_threshold)
-    sections: list[tuple[str, bytes]] = [("positions", pack_positions(q)),
+    sections: list[tuple[str, bytes]] = [("positions", pos_blob),
                                          ("masks", encode_bernoulli(gmask.numpy().astype(np.uint8)))]
     em = entropy.serialize(precision)          # rounds the entropy model's weights first
     sections += [(f"em.{k}", v) for k, v in em.items()]
@@ -148,6 +161,8 @@ def encode_model(cfg, model, entropy, path: str | Path, extra_header: Optional[d
         "entropy": entropy.config(),
         "weight_dtype": precision,
     }
+    if coding != "raw16":         # files without the key are raw16 (all files before it existed)
+        header["position_coding"] = coding
     if extra_header:
         header.update(extra_header)
     size = write_container(path, header, sections)
@@ -226,7 +241,13 @@ def decode_model(path: str | Path) -> DecodedModel:
     for sec in ("positions", "masks"):
         if sec not in sections:
             raise BitstreamError(f"missing section '{sec}'")
-    q = unpack_positions(sections["positions"], N)
+    coding = header.get("position_coding", "raw16")
+    if coding == "sorted":
+        q = decode_positions(sections["positions"], N)
+    elif coding == "raw16":
+        q = unpack_positions(sections["positions"], N)
+    else:
+        raise BitstreamError(f"{path}: unknown position coding {coding!r} in the header")
     xyz = torch.from_numpy(dequantize_positions(q, lo, hi))
     gm = decode_bernoulli(sections["masks"], expected_n=N * K, what="section 'masks'")
     gmask = torch.from_numpy(np.asarray(gm, dtype=np.float32).reshape(N, K))
@@ -290,6 +311,7 @@ def file_info(path: str | Path) -> dict:
     info = {"total_bytes": total, "sections": rows, "groups": groups,
             "n_anchors": header.get("n_anchors"),
             "header": {k: header[k] for k in ("n_anchors", "n_offsets", "weight_dtype") if k in header}}
+    info["header"]["position_coding"] = header.get("position_coding", "raw16")
     on = None
     if "masks" in sections:              # how many neural Gaussians the decoder keeps
         n, on = bernoulli_counts(sections["masks"], what="section 'masks'")
