@@ -132,7 +132,8 @@ def cmd_encode(args) -> int:
               f"'{trainer.phase}'); the file is coded with an untrained context model")
     scene_path = json.loads((Path(args.run) / "scene.json").read_text())["path"]
     cfg = trainer.cfg
-    codec_over = {k: v for k, v in (("weight_dtype", args.weights), ("positions", args.positions))
+    codec_over = {k: v for k, v in (("weight_dtype", args.weights), ("positions", args.positions),
+                                    ("masks", args.masks))
                   if v and v != getattr(cfg.codec, k)}
     if codec_over:              # a file of the run coded differently: not recorded with the run
         import dataclasses
@@ -353,6 +354,9 @@ def main(argv=None) -> int:
     p.add_argument("--positions", choices=["raw16", "sorted"], default=None,
                    help="anchor positions: raw 16-bit (HAC) or coded losslessly as a set "
                         "(default: the run's codec.positions)")
+    p.add_argument("--masks", choices=["bernoulli", "patterns"], default=None,
+                   help="Gaussian masks: one global probability (HAC) or per-anchor patterns "
+                        "(default: the run's codec.masks)")
     p.add_argument("--rate-check", action="store_true",
                    help="print the training loss's bit estimate beside the bytes written, per section")
     p.set_defaults(fn=cmd_encode)

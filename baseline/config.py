@@ -151,6 +151,7 @@ class EntropyConfig:
 
 
 POSITION_CODINGS = ("raw16", "sorted")
+MASK_CODINGS = ("bernoulli", "patterns")
 
 
 @dataclass
@@ -159,6 +160,9 @@ class CodecConfig:
     # anchor positions in the file: raw16 (HAC's and the paper's 48 bits per anchor) | sorted
     # (the same 16-bit values coded losslessly as a set: baseline/codec/positions.py)
     positions: str = "raw16"
+    # Gaussian masks: bernoulli (HAC's: one global probability) | patterns (each anchor's K bits
+    # as one symbol, the file's own histogram: baseline/codec/masks.py)
+    masks: str = "bernoulli"
 
 
 @dataclass
@@ -330,6 +334,9 @@ def validate(cfg: Config) -> None:
     if cfg.codec.positions not in POSITION_CODINGS:
         raise ConfigError(f"codec.positions must be one of {', '.join(POSITION_CODINGS)}, "
                           f"got '{cfg.codec.positions}'")
+    if cfg.codec.masks not in MASK_CODINGS:
+        raise ConfigError(f"codec.masks must be one of {', '.join(MASK_CODINGS)}, "
+                          f"got '{cfg.codec.masks}'")
 
 
 # ----------------------------------------------------------------------------- serialization
@@ -389,7 +396,8 @@ EXECUTION_KEYS = (("train", "device"),)
 LATER_KEYS = {("lr", "mask_schedule_scaled"): False,
               ("densify", "clamp_scaling_to_end"): False,
               ("entropy", "decoder_quant"): "noise",
-              ("codec", "positions"): "raw16"}
+              ("codec", "positions"): "raw16",
+              ("codec", "masks"): "bernoulli"}
 
 
 def config_hash(cfg: Config) -> str:

@@ -141,17 +141,24 @@ def test_info_groups_sum_to_file_size(encoded):
         assert "feat" in names and "provider.grid" not in names
 
 
-def test_sorted_positions_decode_the_same_model_smaller(encoded, scene, tmp_path):
-    """codec.positions = "sorted": the same 16-bit positions coded as a set; every section follows
-    their Morton order, so the decoded model is the raw16 file's up to the anchor order."""
+def test_compact_codec_decodes_the_same_model_smaller(encoded, scene, tmp_path):
+    """codec.positions = "sorted" (the same 16-bit positions coded as a set; every section
+    follows their Morton order) and codec.masks = "patterns": the decoded model is the default
+    file's up to the anchor order, the two sections smaller."""
     import dataclasses
 
     t = encoded["trainer"]
-    cfg = dataclasses.replace(t.cfg, codec=dataclasses.replace(t.cfg.codec, positions="sorted"))
+    cfg = dataclasses.replace(t.cfg, codec=dataclasses.replace(t.cfg.codec, positions="sorted",
+                                                               masks="patterns"))
     st = encode_model(cfg, t.model, t.entropy, tmp_path / "s.pgs", extra_header={"scene": "x"})
     raw, srt = decode_model(encoded["path"]), decode_model(tmp_path / "s.pgs")
     assert srt.header["position_coding"] == "sorted" and "position_coding" not in raw.header
-    assert file_info(tmp_path / "s.pgs")["header"]["position_coding"] == "sorted"
+    assert srt.header["mask_coding"] == "patterns" and "mask_coding" not in raw.header
+    info = file_info(tmp_path / "s.pgs")
+    assert info["header"]["position_coding"] == "sorted"
+    assert info["header"]["mask_coding"] == "patterns"
+    assert info["masks_on"] == file_info(encoded["path"])["masks_on"]
+    assert sum(info["groups"].values()) == info["total_bytes"]
     # the encoder's own values, in its (sorted) order, are what the decoder returns
     assert torch.equal(srt.model.xyz, st["xyz_q"])
     for k, v in st["values"].items():
@@ -167,21 +174,23 @@ def test_sorted_positions_decode_the_same_model_smaller(encoded, scene, tmp_path
     a = evaluate(raw.model, scene, scene.test_cameras, phase="decoded", backend="cpu")
     b = evaluate(srt.model, scene, scene.test_cameras, phase="decoded", backend="cpu")
     assert abs(a["psnr"] - b["psnr"]) < 0.01
-    sec_raw = read_container(encoded["path"].read_bytes())[1]["positions"]
-    sec_srt = read_container((tmp_path / "s.pgs").read_bytes())[1]["positions"]
-    assert len(sec_raw) == 6 * raw.model.n_anchors and len(sec_srt) < len(sec_raw)
-    # damage inside the sorted section is named (the container's CRC catches it first)
-    blob = bytearray((tmp_path / "s.pgs").read_bytes())
-    i = bytes(blob).find(sec_srt) + len(sec_srt) // 2
-    blob[i] ^= 0x5A
-    (tmp_path / "bad.pgs").write_bytes(bytes(blob))
-    with pytest.raises(BitstreamError, match="positions"):
-        decode_model(tmp_path / "bad.pgs")
+    secs_raw = read_container(encoded["path"].read_bytes())[1]
+    secs_srt = read_container((tmp_path / "s.pgs").read_bytes())[1]
+    assert len(secs_raw["positions"]) == 6 * raw.model.n_anchors
+    for name in ("positions", "masks"):
+        # (this barely trained model keeps every mask on: a constant costs both codings ~nothing)
+        assert len(secs_srt[name]) < len(secs_raw[name]) or len(secs_srt[name]) <= 64, name
+        # damage inside the section is named (the container's CRC catches it first)
+        blob = bytearray((tmp_path / "s.pgs").read_bytes())
+        blob[bytes(blob).find(secs_srt[name]) + len(secs_srt[name]) // 2] ^= 0x5A
+        (tmp_path / "bad.pgs").write_bytes(bytes(blob))
+        with pytest.raises(BitstreamError, match=name):
+            decode_model(tmp_path / "bad.pgs")
 
 
 def test_encode_cli_codes_positions_without_touching_the_run(tmp_path, scene):
-    """`pgs encode RUN --positions sorted` writes a smaller file of the same run and, being a
-    different coding than the run's config, records nothing in the run's results.json."""
+    """`pgs encode RUN --positions sorted --masks patterns` writes a smaller file of the same run
+    and, being a different coding than the run's config, records nothing in its results.json."""
     from baseline.cli import main
 
     run = tmp_path / "run"
@@ -192,7 +201,8 @@ def test_encode_cli_codes_positions_without_touching_the_run(tmp_path, scene):
 
     train_run(str(scene.source_path), run, cfg, progress=False, evaluate_after=False)
     before = (run / "results.json").read_text()
-    assert main(["encode", str(run), "-o", str(tmp_path / "s.pgs"), "--positions", "sorted"]) == 0
+    assert main(["encode", str(run), "-o", str(tmp_path / "s.pgs"), "--positions", "sorted",
+                 "--masks", "patterns"]) == 0
     assert (run / "results.json").read_text() == before
     assert main(["encode", str(run), "-o", str(tmp_path / "r.pgs")]) == 0
     assert (tmp_path / "s.pgs").stat().st_size < (tmp_path / "r.pgs").stat().st_size

@@ -129,12 +129,18 @@ def test_hash_of_finished_runs_survives_new_options():
     srt = build_config(["cpu", "demo", "positions-sorted"], ["entropy.lmbda=0.004"])
     assert ("codec", "positions") in LATER_KEYS and srt.codec.positions == "sorted"
     assert config_hash(srt) not in archived
+    cc = build_config(["cpu", "demo", "compact-codec"], ["entropy.lmbda=0.004"])
+    assert ("codec", "masks") in LATER_KEYS and cc.codec.masks == "patterns"
+    assert cc.codec.positions == "sorted" and config_hash(cc) not in archived
 
 
 def test_position_coding_is_validated():
     assert build_config([]).codec.positions == "raw16"      # HAC's layout by default
     with pytest.raises(ConfigError, match="codec.positions"):
         build_config([], ["codec.positions=octree"])
+    assert build_config([]).codec.masks == "bernoulli"
+    with pytest.raises(ConfigError, match="codec.masks"):
+        build_config([], ["codec.masks=rle"])
 
 
 def test_decoder_quant_is_validated():

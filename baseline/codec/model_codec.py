@@ -5,7 +5,9 @@ Sections (each with length + CRC32 in the container, DESIGN.md "Bitstream"):
                          uint16 [N,3] (codec.positions = "raw16", HAC's layout) or coded as a
                          set ("sorted", baseline/codec/positions.py; the anchors of every other
                          section then follow the positions' Morton order)
-    masks                Bernoulli-coded Gaussian masks [N,K] (one global p)
+    masks                Gaussian masks [N,K]: Bernoulli-coded with one global p
+                         (codec.masks = "bernoulli", HAC's) or each anchor's K bits as one
+                         symbol ("patterns", baseline/codec/masks.py)
     em.grid / em.mlp     the entropy model (binary hash grid, context MLP + grid bounds)
     decoder.weights      the opacity / covariance / colour MLPs
     provider.*           what the feature provider owns (Predict-GS: its SFP grid and fusion MLP)
@@ -32,6 +34,7 @@ import torch
 import torch.nn as nn
 
 from baseline.codec.container import BitstreamError, read_container, write_container
+from baseline.codec.masks import decode_mask_patterns, encode_mask_patterns, mask_pattern_counts
 from baseline.codec.positions import decode_positions, encode_positions
 from baseline.codec.rangecoder import (anchor_bounds, bernoulli_counts, decode_bernoulli,
                                        dequantize_positions, encode_bernoulli, pack_positions,
@@ -134,8 +137,14 @@ def encode_model(cfg, model, entropy, path: str | Path, extra_header: Optional[d
         raise ValueError(f"codec.positions: unknown coding {coding!r}")
     xyz_q = torch.from_numpy(dequantize_positions(q, lo, hi))
     gmask = (torch.sigmoid(model.per_anchor["mask"].detach()[idx][..., 0]) > model.mask_threshold)
-    sections: list[tuple[str, bytes]] = [("positions", pos_blob),
-                                         ("masks", encode_bernoulli(gmask.numpy().astype(np.uint8)))]
+    mask_coding = cfg.codec.masks
+    if mask_coding == "patterns":
+        mask_blob = encode_mask_patterns(gmask.numpy().astype(np.uint8))
+    elif mask_coding == "bernoulli":
+        mask_blob = encode_bernoulli(gmask.numpy().astype(np.uint8))
+    else:
+        raise ValueError(f"codec.masks: unknown coding {mask_coding!r}")
+    sections: list[tuple[str, bytes]] = [("positions", pos_blob), ("masks", mask_blob)]
     em = entropy.serialize(precision)          # rounds the entropy model's weights first
     sections += [(f"em.{k}", v) for k, v in em.items()]
     sections += _module_sections("decoder", model.decoder, precision)
@@ -163,6 +172,8 @@ def encode_model(cfg, model, entropy, path: str | Path, extra_header: Optional[d
     }
     if coding != "raw16":         # files without the key are raw16 (all files before it existed)
         header["position_coding"] = coding
+    if mask_coding != "bernoulli":        # likewise
+        header["mask_coding"] = mask_coding
     if extra_header:
         header.update(extra_header)
     size = write_container(path, header, sections)
@@ -249,7 +260,13 @@ def decode_model(path: str | Path) -> DecodedModel:
     else:
         raise BitstreamError(f"{path}: unknown position coding {coding!r} in the header")
     xyz = torch.from_numpy(dequantize_positions(q, lo, hi))
-    gm = decode_bernoulli(sections["masks"], expected_n=N * K, what="section 'masks'")
+    mask_coding = header.get("mask_coding", "bernoulli")
+    if mask_coding == "patterns":
+        gm = decode_mask_patterns(sections["masks"], N, K)
+    elif mask_coding == "bernoulli":
+        gm = decode_bernoulli(sections["masks"], expected_n=N * K, what="section 'masks'")
+    else:
+        raise BitstreamError(f"{path}: unknown mask coding {mask_coding!r} in the header")
     gmask = torch.from_numpy(np.asarray(gm, dtype=np.float32).reshape(N, K))
     prov_cls = registry.get("feature_provider", cfg.model.feature_provider)
     ref_cls = None if cfg.model.refiner in ("", "none") else registry.get("refiner", cfg.model.refiner)
@@ -312,9 +329,12 @@ def file_info(path: str | Path) -> dict:
             "n_anchors": header.get("n_anchors"),
             "header": {k: header[k] for k in ("n_anchors", "n_offsets", "weight_dtype") if k in header}}
     info["header"]["position_coding"] = header.get("position_coding", "raw16")
+    info["header"]["mask_coding"] = header.get("mask_coding", "bernoulli")
     on = None
     if "masks" in sections:              # how many neural Gaussians the decoder keeps
-        n, on = bernoulli_counts(sections["masks"], what="section 'masks'")
+        counter = (mask_pattern_counts if header.get("mask_coding") == "patterns"
+                   else bernoulli_counts)
+        n, on = counter(sections["masks"], what="section 'masks'")
         info["masks_on"] = {"on": on, "total": n}
     info["attributes"] = coded_elements(header, sections, on)
     return info
