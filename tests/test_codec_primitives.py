@@ -182,3 +182,20 @@ def test_gaussian_stream_fuzz_never_crashes():
 
     stats = fuzz_parser(parse, blob, n=300, seed=2)
     assert stats["error"] > 0
+
+
+def test_categorical_with_a_stored_histogram():
+    from baseline.codec.rangecoder import decode_categorical, encode_categorical
+
+    rng = np.random.default_rng(8)
+    sym = rng.choice(4, size=3000, p=[0.7, 0.2, 0.09, 0.01])
+    counts = np.bincount(sym, minlength=4)
+    blob = encode_categorical(sym, counts)
+    assert np.array_equal(decode_categorical(blob, counts, "t"), sym)
+    assert len(blob) * 8 < 1.05 * 3000 * 1.26 + 64          # near the entropy (~1.23 bits)
+    assert encode_categorical(np.zeros(5, int), [5]) == b""
+    assert np.array_equal(decode_categorical(b"", [5], "t"), np.zeros(5))
+    with pytest.raises(BitstreamError, match="single symbol kind"):
+        decode_categorical(b"\0\0\0\0", [5], "t")
+    with pytest.raises(BitstreamError, match="t:"):      # a histogram the payload does not hold
+        decode_categorical(blob, counts + np.array([5, -5, 0, 0]), "t")

@@ -15,18 +15,13 @@ import numpy as np
 
 from baseline.codec.container import BitstreamError
 from baseline.codec.positions import decode_uints, encode_uints
-from baseline.codec.rangecoder import (_CODER_ERRORS, _bytes_to_words, _call_coder,
-                                       _require_constriction, _words_to_bytes)
+from baseline.codec.rangecoder import decode_categorical, encode_categorical
 
 TAG = b"M1"
 _HEAD = struct.Struct("<2sIB")     # tag, n anchors, K
 _LEN = struct.Struct("<I")
 MAX_K = 48
 MAX_N = 1 << 31
-
-
-def _probabilities(counts: np.ndarray) -> np.ndarray:
-    return counts.astype(np.float64) / float(counts.sum())
 
 
 def encode_mask_patterns(m) -> bytes:
@@ -41,13 +36,7 @@ def encode_mask_patterns(m) -> bytes:
              encode_uints(np.diff(uniq.astype(np.int64), prepend=0).astype(np.uint64)
                           if uniq.size else uniq, max(k, 1)),
              encode_uints(counts.astype(np.uint64), 32)]
-    words = b""
-    if uniq.size > 1:
-        c = _require_constriction()
-        enc = c.stream.queue.RangeEncoder()
-        enc.encode(inv.reshape(-1).astype(np.int32),
-                   c.stream.model.Categorical(_probabilities(counts), perfect=False))
-        words = _words_to_bytes(enc.get_compressed())
+    words = encode_categorical(inv, counts)
     parts += [_LEN.pack(len(words)), words]
     return b"".join(parts)
 
@@ -101,20 +90,7 @@ def decode_mask_patterns(blob, n_expected: int, k_expected: int,
     if len(words) != n_words or pos + n_words != len(buf):
         raise BitstreamError(f"{what}: payload is {len(buf) - pos} bytes, its length field "
                              f"says {n_words}")
-    if uniq.size > 1:
-        c = _require_constriction()
-        try:
-            dec = _call_coder(c.stream.queue.RangeDecoder, _bytes_to_words(words, what))
-            idx = _call_coder(dec.decode, c.stream.model.Categorical(_probabilities(counts),
-                                                                     perfect=False), int(n))
-        except _CODER_ERRORS as e:
-            raise BitstreamError(f"{what}: range decoding failed ({e})") from None
-        idx = np.asarray(idx, np.int64)
-        if idx.size != n or not np.array_equal(np.bincount(idx, minlength=uniq.size), counts):
-            raise BitstreamError(f"{what}: decoded patterns do not match their table")
-        pat = uniq[idx]
-    else:
-        if words:
-            raise BitstreamError(f"{what}: unexpected payload for a single pattern")
-        pat = np.full(n, uniq[0] if uniq.size else 0, np.uint64)
+    if uniq.size == 0 and words:
+        raise BitstreamError(f"{what}: unexpected payload for no masks")
+    pat = uniq[decode_categorical(words, counts, what)] if uniq.size else np.zeros(0, np.uint64)
     return ((pat[:, None] >> np.arange(k, dtype=np.uint64)) & np.uint64(1)).astype(np.uint8)

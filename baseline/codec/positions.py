@@ -27,8 +27,7 @@ from typing import Tuple
 import numpy as np
 
 from baseline.codec.container import BitstreamError
-from baseline.codec.rangecoder import (_CODER_ERRORS, _bytes_to_words, _call_coder,
-                                       _require_constriction, _words_to_bytes)
+from baseline.codec.rangecoder import decode_categorical, encode_categorical
 
 TAG = b"P1"
 _HEAD = struct.Struct("<2sI")      # tag, n anchors
@@ -52,11 +51,6 @@ def _bit_lengths(v: np.ndarray) -> np.ndarray:
     return L
 
 
-def _probabilities(counts: np.ndarray) -> np.ndarray:
-    """The coding distribution of the bit lengths: counts / total in float64 (both sides)."""
-    return counts.astype(np.float64) / float(counts.sum())
-
-
 def encode_uints(v, max_bits: int) -> bytes:
     """Code a sequence of unsigned integers (< 2^max_bits) by bit length + raw low bits."""
     v = np.asarray(v, dtype=np.uint64).reshape(-1)
@@ -67,14 +61,7 @@ def encode_uints(v, max_bits: int) -> bytes:
     syms, counts = np.unique(L, return_counts=True)
     parts = [_SEQ.pack(n, len(syms))]
     parts += [_SYM.pack(int(s), int(c)) for s, c in zip(syms, counts)]
-    if len(syms) > 1:
-        c = _require_constriction()
-        enc = c.stream.queue.RangeEncoder()
-        sym_index = np.searchsorted(syms, L).astype(np.int32)
-        enc.encode(sym_index, c.stream.model.Categorical(_probabilities(counts), perfect=False))
-        words = _words_to_bytes(enc.get_compressed())
-    else:
-        words = b""
+    words = encode_categorical(np.searchsorted(syms, L), counts)
     parts += [_LEN.pack(len(words)), words]
     # the bits under each leading one, most significant first, packed
     nb = np.maximum(L - 1, 0)
@@ -124,24 +111,10 @@ def decode_uints(buf: bytes, pos: int, max_bits: int, what: str, max_n: int = MA
         raise BitstreamError(f"{what}: bit-length counts sum to {int(counts.sum())}, expected {n}")
     (n_words,) = _LEN.unpack(take(_LEN.size))
     words = take(n_words)
-    if n_sym > 1:
-        c = _require_constriction()
-        try:
-            dec = _call_coder(c.stream.queue.RangeDecoder, _bytes_to_words(words, what))
-            idx = _call_coder(dec.decode, c.stream.model.Categorical(_probabilities(counts),
-                                                                     perfect=False), int(n))
-        except _CODER_ERRORS as e:
-            raise BitstreamError(f"{what}: range decoding failed ({e})") from None
-        idx = np.asarray(idx, np.int64)
-        if idx.size != n or np.any(idx < 0) or np.any(idx >= n_sym):
-            raise BitstreamError(f"{what}: decoded bit lengths out of range")
-        L = syms[idx]
-        if not np.array_equal(np.bincount(idx, minlength=n_sym), counts):
-            raise BitstreamError(f"{what}: decoded bit lengths do not match their table")
-    else:
-        if words:
-            raise BitstreamError(f"{what}: unexpected payload for a single bit length")
-        L = np.full(n, int(syms[0]) if n_sym else 0, np.int64)
+    if n_sym == 0 and words:
+        raise BitstreamError(f"{what}: unexpected payload for an empty sequence")
+    L = syms[decode_categorical(words, counts, f"{what}, bit lengths")] if n_sym else \
+        np.zeros(0, np.int64)
     (n_raw,) = _LEN.unpack(take(_LEN.size))
     raw = take(n_raw)
     nb = np.maximum(L - 1, 0)

@@ -139,6 +139,49 @@ def decode_bernoulli(blob, expected_n: Optional[int] = None, what: str = "bernou
     return out
 
 
+# ------------------------------------------------------------------------ categorical
+def categorical_probabilities(counts) -> np.ndarray:
+    """The coding distribution of a stored histogram: counts / total in float64 (both sides)."""
+    counts = np.asarray(counts, dtype=np.int64)
+    return counts.astype(np.float64) / float(counts.sum())
+
+
+def encode_categorical(symbols, counts) -> bytes:
+    """Range code symbol indices ``0..len(counts)-1`` whose histogram is ``counts`` (stored by
+    the caller). One symbol kind needs no payload: ``b""``."""
+    counts = np.asarray(counts, dtype=np.int64)
+    if len(counts) < 2:
+        return b""
+    c = _require_constriction()
+    enc = c.stream.queue.RangeEncoder()
+    enc.encode(np.asarray(symbols, dtype=np.int32).reshape(-1),
+               c.stream.model.Categorical(categorical_probabilities(counts), perfect=False))
+    return _words_to_bytes(enc.get_compressed())
+
+
+def decode_categorical(payload, counts, what: str) -> np.ndarray:
+    """Inverse of :func:`encode_categorical`: int64 [sum(counts)] indices, checked against the
+    histogram (a corrupt payload is a BitstreamError, never a wrong result of the right size)."""
+    counts = np.asarray(counts, dtype=np.int64)
+    n = int(counts.sum())
+    if len(counts) < 2:
+        if payload:
+            raise BitstreamError(f"{what}: unexpected payload for a single symbol kind")
+        return np.zeros(n, np.int64)
+    c = _require_constriction()
+    try:
+        dec = _call_coder(c.stream.queue.RangeDecoder, _bytes_to_words(payload, what))
+        idx = _call_coder(dec.decode, c.stream.model.Categorical(
+            categorical_probabilities(counts), perfect=False), n)
+    except _CODER_ERRORS as e:
+        raise BitstreamError(f"{what}: range decoding failed ({e})") from None
+    idx = np.asarray(idx, np.int64)
+    if (idx.size != n or np.any(idx < 0) or np.any(idx >= len(counts))
+            or not np.array_equal(np.bincount(idx, minlength=len(counts)), counts)):
+        raise BitstreamError(f"{what}: decoded symbols do not match their histogram")
+    return idx
+
+
 # --------------------------------------------------------------------------- Gaussian
 _G_TAG = b"G1"
 _G_HDR = struct.Struct("<2sII")   # tag, n_chunks, n_escapes
