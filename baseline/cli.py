@@ -133,7 +133,7 @@ def cmd_encode(args) -> int:
     scene_path = json.loads((Path(args.run) / "scene.json").read_text())["path"]
     cfg = trainer.cfg
     codec_over = {k: v for k, v in (("weight_dtype", args.weights), ("positions", args.positions),
-                                    ("masks", args.masks))
+                                    ("masks", args.masks), ("grids", args.grids))
                   if v and v != getattr(cfg.codec, k)}
     if codec_over:              # a file of the run coded differently: not recorded with the run
         import dataclasses
@@ -357,6 +357,9 @@ def main(argv=None) -> int:
     p.add_argument("--masks", choices=["bernoulli", "patterns"], default=None,
                    help="Gaussian masks: one global probability (HAC) or per-anchor patterns "
                         "(default: the run's codec.masks)")
+    p.add_argument("--grids", choices=["all", "used"], default=None,
+                   help="hash grids: every entry (HAC) or only those the anchors read "
+                        "(default: the run's codec.grids)")
     p.add_argument("--rate-check", action="store_true",
                    help="print the training loss's bit estimate beside the bytes written, per section")
     p.set_defaults(fn=cmd_encode)

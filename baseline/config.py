@@ -152,6 +152,7 @@ class EntropyConfig:
 
 POSITION_CODINGS = ("raw16", "sorted")
 MASK_CODINGS = ("bernoulli", "patterns")
+GRID_CODINGS = ("all", "used")
 
 
 @dataclass
@@ -163,6 +164,9 @@ class CodecConfig:
     # Gaussian masks: bernoulli (HAC's: one global probability) | patterns (each anchor's K bits
     # as one symbol, the file's own histogram: baseline/codec/masks.py)
     masks: str = "bernoulli"
+    # binary hash grids (HAC's context grid, Predict-GS's SFP): all (every entry, HAC's) | used
+    # (only the entries some decoded anchor reads; the decoder derives them from the positions)
+    grids: str = "all"
 
 
 @dataclass
@@ -337,6 +341,9 @@ def validate(cfg: Config) -> None:
     if cfg.codec.masks not in MASK_CODINGS:
         raise ConfigError(f"codec.masks must be one of {', '.join(MASK_CODINGS)}, "
                           f"got '{cfg.codec.masks}'")
+    if cfg.codec.grids not in GRID_CODINGS:
+        raise ConfigError(f"codec.grids must be one of {', '.join(GRID_CODINGS)}, "
+                          f"got '{cfg.codec.grids}'")
 
 
 # ----------------------------------------------------------------------------- serialization
@@ -397,7 +404,8 @@ LATER_KEYS = {("lr", "mask_schedule_scaled"): False,
               ("densify", "clamp_scaling_to_end"): False,
               ("entropy", "decoder_quant"): "noise",
               ("codec", "positions"): "raw16",
-              ("codec", "masks"): "bernoulli"}
+              ("codec", "masks"): "bernoulli",
+              ("codec", "grids"): "all"}
 
 
 def config_hash(cfg: Config) -> str:

@@ -143,13 +143,14 @@ def test_info_groups_sum_to_file_size(encoded):
 
 def test_compact_codec_decodes_the_same_model_smaller(encoded, scene, tmp_path):
     """codec.positions = "sorted" (the same 16-bit positions coded as a set; every section
-    follows their Morton order) and codec.masks = "patterns": the decoded model is the default
-    file's up to the anchor order, the two sections smaller."""
+    follows their Morton order), codec.masks = "patterns" and codec.grids = "used" (only the
+    hash-grid entries the anchors read): the decoded model is the default file's up to the
+    anchor order, those sections smaller."""
     import dataclasses
 
     t = encoded["trainer"]
     cfg = dataclasses.replace(t.cfg, codec=dataclasses.replace(t.cfg.codec, positions="sorted",
-                                                               masks="patterns"))
+                                                               masks="patterns", grids="used"))
     st = encode_model(cfg, t.model, t.entropy, tmp_path / "s.pgs", extra_header={"scene": "x"})
     raw, srt = decode_model(encoded["path"]), decode_model(tmp_path / "s.pgs")
     assert srt.header["position_coding"] == "sorted" and "position_coding" not in raw.header
@@ -157,6 +158,7 @@ def test_compact_codec_decodes_the_same_model_smaller(encoded, scene, tmp_path):
     info = file_info(tmp_path / "s.pgs")
     assert info["header"]["position_coding"] == "sorted"
     assert info["header"]["mask_coding"] == "patterns"
+    assert info["header"]["grid_coding"] == "used" and srt.header["grid_coding"] == "used"
     assert info["masks_on"] == file_info(encoded["path"])["masks_on"]
     assert sum(info["groups"].values()) == info["total_bytes"]
     # the encoder's own values, in its (sorted) order, are what the decoder returns
@@ -171,13 +173,21 @@ def test_compact_codec_decodes_the_same_model_smaller(encoded, scene, tmp_path):
     for k, v in raw.model.fixed_values.items():
         assert torch.equal(v[perm], srt.model.fixed_values[k]), k
     assert torch.equal(raw.model.gaussian_mask()[perm], srt.model.gaussian_mask())
+    # the SFP (a grid coded with only its used entries) predicts the same features
+    if hasattr(srt.model.provider, "predict"):
+        with torch.no_grad():
+            f_raw = raw.model.provider.predict(raw.model.xyz)
+            f_srt = srt.model.provider.predict(srt.model.xyz)
+        assert torch.equal(f_raw[perm], f_srt)
     a = evaluate(raw.model, scene, scene.test_cameras, phase="decoded", backend="cpu")
     b = evaluate(srt.model, scene, scene.test_cameras, phase="decoded", backend="cpu")
     assert abs(a["psnr"] - b["psnr"]) < 0.01
     secs_raw = read_container(encoded["path"].read_bytes())[1]
     secs_srt = read_container((tmp_path / "s.pgs").read_bytes())[1]
     assert len(secs_raw["positions"]) == 6 * raw.model.n_anchors
-    for name in ("positions", "masks"):
+    grids = [n for n in secs_srt if n.endswith("grid")]
+    assert "em.grid" in grids
+    for name in ["positions", "masks"] + grids:
         # (this barely trained model keeps every mask on: a constant costs both codings ~nothing)
         assert len(secs_srt[name]) < len(secs_raw[name]) or len(secs_srt[name]) <= 64, name
         # damage inside the section is named (the container's CRC catches it first)
@@ -202,7 +212,7 @@ def test_encode_cli_codes_positions_without_touching_the_run(tmp_path, scene):
     train_run(str(scene.source_path), run, cfg, progress=False, evaluate_after=False)
     before = (run / "results.json").read_text()
     assert main(["encode", str(run), "-o", str(tmp_path / "s.pgs"), "--positions", "sorted",
-                 "--masks", "patterns"]) == 0
+                 "--masks", "patterns", "--grids", "used"]) == 0
     assert (run / "results.json").read_text() == before
     assert main(["encode", str(run), "-o", str(tmp_path / "r.pgs")]) == 0
     assert (tmp_path / "s.pgs").stat().st_size < (tmp_path / "r.pgs").stat().st_size

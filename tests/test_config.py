@@ -132,6 +132,7 @@ def test_hash_of_finished_runs_survives_new_options():
     cc = build_config(["cpu", "demo", "compact-codec"], ["entropy.lmbda=0.004"])
     assert ("codec", "masks") in LATER_KEYS and cc.codec.masks == "patterns"
     assert cc.codec.positions == "sorted" and config_hash(cc) not in archived
+    assert ("codec", "grids") in LATER_KEYS and cc.codec.grids == "used"
 
 
 def test_position_coding_is_validated():
@@ -141,6 +142,9 @@ def test_position_coding_is_validated():
     assert build_config([]).codec.masks == "bernoulli"
     with pytest.raises(ConfigError, match="codec.masks"):
         build_config([], ["codec.masks=rle"])
+    assert build_config([]).codec.grids == "all"
+    with pytest.raises(ConfigError, match="codec.grids"):
+        build_config([], ["codec.grids=some"])
 
 
 def test_decoder_quant_is_validated():

@@ -219,6 +219,41 @@ def test_binary_values_round_trip():
     assert torch.equal(g.features_fixed(xyz), h.features_fixed(xyz))
 
 
+@pytest.mark.parametrize("oob", ["per_grid", "all"])
+def test_used_values_are_all_the_points_read(small_grid, oob):
+    """codec.grids = "used": every entry outside ``used_values(points)`` can take any value
+    without changing the features at those points, on the float and the exact path; coding only
+    the used entries round-trips to the same features."""
+    g = BinaryHashGrid(**{k: v for k, v in small_grid.config.items() if k != "oob"}, oob=oob)
+    g.load_state_dict(small_grid.state_dict())
+    rng = np.random.default_rng(7)
+    pts = torch.from_numpy(special_points(g.xyz_min.numpy(), g.xyz_max.numpy(), rng, 30)).float()
+    used = g.used_values(pts)
+    assert used.dtype == bool and used.size == g.n_binary and 0 < used.sum() < used.size
+    ref, ref_exact = g(pts), g.features_fixed(pts)
+    flipped = g.binary_values()
+    flipped[~used] = 1 - flipped[~used]              # every unused entry flipped
+    h = BinaryHashGrid(**g.config)
+    h.load_state_dict(g.state_dict())
+    h.load_binary_values(flipped)
+    assert torch.equal(h(pts), ref) and torch.equal(h.features_fixed(pts), ref_exact)
+    # ... and flipping one used entry changes some feature
+    one = g.binary_values()
+    i = int(np.flatnonzero(used)[len(np.flatnonzero(used)) // 2])
+    one[i] = 1 - one[i]
+    h.load_binary_values(one)
+    assert not torch.equal(h.features_fixed(pts), ref_exact)
+    # the codec's round trip with the mask: same features, fewer bytes
+    blob = g.encode_bits(used)
+    d = BinaryHashGrid(**g.config)
+    d.load_state_dict(g.state_dict())
+    d.decode_bits(blob, g.used_values(pts))
+    assert torch.equal(d(pts), ref) and torch.equal(d.features_fixed(pts), ref_exact)
+    assert len(blob) < len(g.encode_bits())
+    with pytest.raises(ValueError):
+        d.decode_bits(blob, used[:-1])
+
+
 def test_auto_layout_rule():
     full = auto_grid_layout(500_000)
     assert full == dict(resolutions_3d=HAC_RESOLUTIONS_3D, log2_table_3d=13,

@@ -8,7 +8,9 @@ Sections (each with length + CRC32 in the container, DESIGN.md "Bitstream"):
     masks                Gaussian masks [N,K]: Bernoulli-coded with one global p
                          (codec.masks = "bernoulli", HAC's) or each anchor's K bits as one
                          symbol ("patterns", baseline/codec/masks.py)
-    em.grid / em.mlp     the entropy model (binary hash grid, context MLP + grid bounds)
+    em.grid / em.mlp     the entropy model (binary hash grid, context MLP + grid bounds); the
+                         grids hold every entry (codec.grids = "all", HAC's) or only those the
+                         decoded anchors read ("used", BinaryHashGrid.used_values)
     decoder.weights      the opacity / covariance / colour MLPs
     provider.*           what the feature provider owns (Predict-GS: its SFP grid and fusion MLP)
     refiner.weights      the refiner's networks (Predict-GS: MGRD)
@@ -52,13 +54,16 @@ def _grid_modules(module: nn.Module):
     return [(n, m) for n, m in module.named_modules() if isinstance(m, BinaryHashGrid)]
 
 
-def _module_sections(prefix: str, module: nn.Module, precision: str) -> list[tuple[str, bytes]]:
-    """Binary grids of ``module`` as Bernoulli-coded sections, everything else as weights."""
+def _module_sections(prefix: str, module: nn.Module, precision: str,
+                     used_xyz=None) -> list[tuple[str, bytes]]:
+    """Binary grids of ``module`` as Bernoulli-coded sections (with ``used_xyz``: only the
+    entries those positions read), everything else as weights."""
     out = []
     grids = _grid_modules(module)
     exclude = []
     for name, g in grids:
-        out.append((f"{prefix}.{name or 'grid'}", g.encode_bits()))
+        used = None if used_xyz is None else g.used_values(used_xyz)
+        out.append((f"{prefix}.{name or 'grid'}", g.encode_bits(used)))
         exclude.append(f"{name}.grids." if name else "grids.")
     bounds = [f"{n}.{b}" if n else b for n, _ in grids for b in ("xyz_min", "xyz_max")]
     round_module_(module, precision, keep=bounds)      # bounds stay float32: they index the grid
@@ -84,7 +89,7 @@ def _factory(cls, cfg, state):
     return lambda m: cls(m, cfg, codec_state=state)
 
 
-def _load_module_sections(prefix: str, module: nn.Module, sections: dict) -> None:
+def _load_module_sections(prefix: str, module: nn.Module, sections: dict, used_xyz=None) -> None:
     grids = _grid_modules(module)
     key = f"{prefix}.weights"
     if key not in sections:
@@ -104,7 +109,7 @@ def _load_module_sections(prefix: str, module: nn.Module, sections: dict) -> Non
         if sec not in sections:
             raise BitstreamError(f"missing section '{sec}'")
         try:
-            g.decode_bits(sections[sec])
+            g.decode_bits(sections[sec], None if used_xyz is None else g.used_values(used_xyz))
         except ValueError as e:          # BitstreamError included: name the section
             raise BitstreamError(f"section '{sec}': {e}") from None
 
@@ -145,10 +150,14 @@ def encode_model(cfg, model, entropy, path: str | Path, extra_header: Optional[d
     else:
         raise ValueError(f"codec.masks: unknown coding {mask_coding!r}")
     sections: list[tuple[str, bytes]] = [("positions", pos_blob), ("masks", mask_blob)]
-    em = entropy.serialize(precision)          # rounds the entropy model's weights first
+    grid_coding = cfg.codec.grids
+    if grid_coding not in ("all", "used"):
+        raise ValueError(f"codec.grids: unknown coding {grid_coding!r}")
+    used_xyz = xyz_q if grid_coding == "used" else None
+    em = entropy.serialize(precision, used_xyz=used_xyz)   # rounds its weights first
     sections += [(f"em.{k}", v) for k, v in em.items()]
     sections += _module_sections("decoder", model.decoder, precision)
-    provider_sections = _module_sections("provider", model.provider, precision)
+    provider_sections = _module_sections("provider", model.provider, precision, used_xyz)
     if any(p.numel() for p in model.provider.parameters()) or len(provider_sections) > 1:
         sections += provider_sections
     if model.refiner is not None:
@@ -174,6 +183,8 @@ def encode_model(cfg, model, entropy, path: str | Path, extra_header: Optional[d
         header["position_coding"] = coding
     if mask_coding != "bernoulli":        # likewise
         header["mask_coding"] = mask_coding
+    if grid_coding != "all":
+        header["grid_coding"] = grid_coding
     if extra_header:
         header.update(extra_header)
     size = write_container(path, header, sections)
@@ -277,12 +288,16 @@ def decode_model(path: str | Path) -> DecodedModel:
                             mask_threshold=cfg.entropy.mask_threshold)
     except (ValueError, TypeError) as e:
         raise BitstreamError(f"{path}: header 'module_state' does not fit the modules: {e}") from None
+    grid_coding = header.get("grid_coding", "all")
+    if grid_coding not in ("all", "used"):
+        raise BitstreamError(f"{path}: unknown grid coding {grid_coding!r} in the header")
+    used_xyz = xyz if grid_coding == "used" else None
     entropy = build_entropy_model(ent_cfg)
     em = {k[3:]: v for k, v in sections.items() if k.startswith("em.")}
-    entropy.load_serialized(em)
+    entropy.load_serialized(em, used_xyz=used_xyz)
     _load_module_sections("decoder", model.decoder, sections)
     if any(n.startswith("provider.") for n in sections):
-        _load_module_sections("provider", model.provider, sections)
+        _load_module_sections("provider", model.provider, sections, used_xyz)
     if model.refiner is not None:
         _load_module_sections("refiner", model.refiner, sections)
         model.refiner.active = True
@@ -330,6 +345,7 @@ def file_info(path: str | Path) -> dict:
             "header": {k: header[k] for k in ("n_anchors", "n_offsets", "weight_dtype") if k in header}}
     info["header"]["position_coding"] = header.get("position_coding", "raw16")
     info["header"]["mask_coding"] = header.get("mask_coding", "bernoulli")
+    info["header"]["grid_coding"] = header.get("grid_coding", "all")
     on = None
     if "masks" in sections:              # how many neural Gaussians the decoder keeps
         counter = (mask_pattern_counts if header.get("mask_coding") == "patterns"

@@ -350,10 +350,12 @@ class EntropyModel(nn.Module):
         return self._coding_pass(xyz, gauss_mask=gauss_mask, blobs=blobs, encode=False)
 
     # --------------------------------------------------------- serialisation
-    def serialize(self, precision: str = "float32") -> Dict[str, bytes]:
+    def serialize(self, precision: str = "float32", used_xyz=None) -> Dict[str, bytes]:
+        """Sections of the model. ``used_xyz`` [N, 3]: the coded anchors' positions, which the
+        decoder knows first; a model with a hash grid then codes only the entries they read."""
         raise NotImplementedError
 
-    def load_serialized(self, blobs: Dict[str, bytes]) -> None:
+    def load_serialized(self, blobs: Dict[str, bytes], used_xyz=None) -> None:
         raise NotImplementedError
 
 
@@ -432,8 +434,9 @@ class HACEntropyModel(EntropyModel):
                   for a in self.attrs}
         return q_all, P_rows
 
-    def serialize(self, precision: str = "float32") -> Dict[str, bytes]:
-        """Sections ``grid`` (Bernoulli-coded binary tables) and ``mlp`` (weights + grid bounds).
+    def serialize(self, precision: str = "float32", used_xyz=None) -> Dict[str, bytes]:
+        """Sections ``grid`` (Bernoulli-coded binary tables; with ``used_xyz`` only the entries
+        those positions read) and ``mlp`` (weights + grid bounds).
 
         Rounds the context MLP in place to ``precision`` first, so the encoder's probabilities
         are the decoder's.
@@ -441,10 +444,11 @@ class HACEntropyModel(EntropyModel):
         round_module_(self.mlp, precision)
         sd = {"xyz_min": self.grid.xyz_min, "xyz_max": self.grid.xyz_max}
         sd.update({f"mlp.{k}": v for k, v in self.mlp.state_dict().items()})
-        return {"grid": self.grid.encode_bits(),
+        used = None if used_xyz is None else self.grid.used_values(used_xyz)
+        return {"grid": self.grid.encode_bits(used),
                 "mlp": pack_state_dict(sd, precision, keep=("xyz_min", "xyz_max"))}
 
-    def load_serialized(self, blobs: Dict[str, bytes]) -> None:
+    def load_serialized(self, blobs: Dict[str, bytes], used_xyz=None) -> None:
         for k in ("grid", "mlp"):
             if k not in blobs:
                 raise BitstreamError(f"entropy model: missing section '{k}'")
@@ -454,7 +458,8 @@ class HACEntropyModel(EntropyModel):
             self.mlp.load_state_dict({k[4:]: v for k, v in sd.items() if k.startswith("mlp.")})
         except (KeyError, RuntimeError, ValueError) as e:
             raise BitstreamError(f"entropy model weights do not fit the model: {e}") from None
-        self.grid.decode_bits(blobs["grid"])
+        used = None if used_xyz is None else self.grid.used_values(used_xyz)
+        self.grid.decode_bits(blobs["grid"], used)
 
 
 class FactorizedEntropyModel(EntropyModel):
@@ -504,11 +509,11 @@ class FactorizedEntropyModel(EntropyModel):
             P[a.name] = (mean.expand(n, -1), scale.expand(n, -1), q)
         return P
 
-    def serialize(self, precision: str = "float32") -> Dict[str, bytes]:
+    def serialize(self, precision: str = "float32", used_xyz=None) -> Dict[str, bytes]:
         round_module_(self, precision)
         return {"factorized": pack_state_dict(self.state_dict(), precision)}
 
-    def load_serialized(self, blobs: Dict[str, bytes]) -> None:
+    def load_serialized(self, blobs: Dict[str, bytes], used_xyz=None) -> None:
         if "factorized" not in blobs:
             raise BitstreamError("entropy model: missing section 'factorized'")
         sd = unpack_state_dict(blobs["factorized"], what="entropy model weights")

@@ -492,16 +492,57 @@ class BinaryHashGrid(nn.Module):
                 g.params.copy_((b * 2 - 1).to(g.params.device))
                 off += n
 
-    def encode_bits(self) -> bytes:
-        """The binarised tables, Bernoulli range coded with one global p (~1 bit per entry)."""
+    @torch.no_grad()
+    def used_values(self, xyz: torch.Tensor) -> np.ndarray:
+        """bool [n_binary] (canonical order): the entries some point of ``xyz`` [N, 3] reads.
+
+        An entry is used when it is a corner with a nonzero weight for some point, on the float
+        path (float32 normalisation, as rendering queries) or the exact coding path (float64);
+        the union of both. Every other entry can take any value without changing a feature at
+        these points (its weight is 0 on both paths), so a codec that knows the points can skip it.
+        """
+        x = xyz.detach().cpu()
+        lo64, hi64 = self.xyz_min.detach().cpu().double(), self.xyz_max.detach().cpu().double()
+        paths = [(self.normalize(x.float().to(self.xyz_min.device)).cpu(), False),
+                 ((x.double() - lo64) / (hi64 - lo64), True)]
+        out = []
+        for k, g in self.grids.items():
+            rows = np.zeros(g.params.shape[0], dtype=bool)
+            for u, exact in paths:
+                uc = u[:, list(self._axes[k])]
+                inside = ((uc >= 0) & (uc <= 1)).all(dim=-1)
+                if self.oob == "all":
+                    inside &= ((u >= 0) & (u <= 1)).all(dim=-1)
+                ui, step = uc[inside], self.chunk or 65536
+                for s in range(0, ui.shape[0], step):
+                    idx, w = g.corner_indices(ui[s:s + step], exact=exact)
+                    rows[idx[w > 0].reshape(-1).long().numpy()] = True
+            out.append(np.repeat(rows, g.params.shape[1]))
+        return np.concatenate(out) if out else np.zeros(0, dtype=bool)
+
+    def encode_bits(self, used: Optional[np.ndarray] = None) -> bytes:
+        """The binarised tables, Bernoulli range coded with one global p (~1 bit per entry).
+
+        ``used`` (bool [n_binary], :meth:`used_values` of the points the decoder will know):
+        code those entries only."""
         from baseline.codec.rangecoder import encode_bernoulli
 
-        return encode_bernoulli(self.binary_values())
+        vals = self.binary_values()
+        return encode_bernoulli(vals if used is None else vals[used])
 
-    def decode_bits(self, blob: bytes) -> None:
+    def decode_bits(self, blob: bytes, used: Optional[np.ndarray] = None) -> None:
+        """Inverse of :meth:`encode_bits` (with the same ``used``); skipped entries become +1."""
         from baseline.codec.rangecoder import decode_bernoulli
 
-        self.load_binary_values(decode_bernoulli(blob, expected_n=self.n_binary))
+        if used is None:
+            self.load_binary_values(decode_bernoulli(blob, expected_n=self.n_binary))
+            return
+        used = np.asarray(used, dtype=bool)
+        if used.size != self.n_binary:
+            raise ValueError(f"used mask of {used.size} entries for {self.n_binary}")
+        full = np.ones(self.n_binary, dtype=np.uint8)
+        full[used] = decode_bernoulli(blob, expected_n=int(used.sum()))
+        self.load_binary_values(full)
 
     # ---------------------------------------------------------------- query
     def forward(self, xyz: torch.Tensor, normalized: bool = False, exact: bool = False) -> torch.Tensor:
