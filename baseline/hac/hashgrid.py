@@ -500,6 +500,8 @@ class BinaryHashGrid(nn.Module):
         path (float32 normalisation, as rendering queries) or the exact coding path (float64);
         the union of both. Every other entry can take any value without changing a feature at
         these points (its weight is 0 on both paths), so a codec that knows the points can skip it.
+        (Another device's float32 could put a point that sits within an ulp of a cell boundary
+        in the neighbouring cell; the corner that changes then has a weight of about that ulp.)
         """
         x = xyz.detach().cpu()
         lo64, hi64 = self.xyz_min.detach().cpu().double(), self.xyz_max.detach().cpu().double()
