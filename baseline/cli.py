@@ -261,7 +261,8 @@ def cmd_compare(args) -> int:
                               common_patches=args.patch, sets=sets,
                               lpips_weights=args.lpips_weights, progress=not args.no_progress,
                               plots=not args.no_plots, only=args.only, remeasure=args.remeasure,
-                              report_only=args.report_only, reference=args.reference)
+                              report_only=args.report_only, reference=args.reference,
+                              codec=args.codec)
     except KeyboardInterrupt:
         print(f"\ninterrupted: finished stages are kept in {args.out}; run the same command "
               f"again to resume", file=sys.stderr)
@@ -423,6 +424,10 @@ def main(argv=None) -> int:
                    help="an uncompressed run on the same protocol to measure every run against "
                         "(e.g. 'scaffold'): PSNR change and 'x smaller' than its float32 model; "
                         "'--only reference' trains just it")
+    p.add_argument("--codec", metavar="PATCH", default=None,
+                   help="a patch of [codec] settings applied when encoding every run, training "
+                        "unchanged (e.g. compact-codec: lossless, smaller files; runs recorded "
+                        "with other settings are encoded and measured again)")
     p.add_argument("--archive", metavar="DIR", default=None,
                    help="afterwards, copy the records of the finished runs this report shows (and its "
                         "reference) and the report to DIR "

@@ -323,3 +323,41 @@ def test_reference_measures_every_run_against_the_uncompressed_model(scene, tmp_
     empty = run_compare(scene, arch, vs=["predict-gs"], reference="scaffold+weights-fp16",
                         report_only=True, **kw)
     assert empty["reference"] is None and "reference (scaffold+weights-fp16)" in empty["missing"]
+
+
+def test_codec_patch_reencodes_without_retraining(scene, tmp_path):
+    """--codec compact-codec: every run is encoded, decoded and measured again with the codec
+    settings (smaller files, the same decoded PSNR), its training reused; the settings are
+    recorded and reported; back without --codec the default files are written again."""
+    from baseline.eval.compare import codec_overrides
+
+    out = tmp_path / "cmp"
+    kw = dict(common_patches=["demo"], sets=SETS, progress=False, plots=False, echo=False)
+    with pytest.raises(ValueError, match="only \\[codec\\] keys"):
+        codec_overrides("predict-gs")
+    assert codec_overrides("compact-codec") == {"positions": "sorted", "masks": "patterns",
+                                                "grids": "used"}
+    first = run_compare(scene, out, vs=["predict-gs"], **kw)
+    comp = run_compare(scene, out, vs=["predict-gs"], codec="compact-codec", **kw)
+    assert comp["codec"] == {"patch": "compact-codec", "settings": codec_overrides("compact-codec")}
+    for a, b in zip(first["runs"], comp["runs"]):
+        assert b["stages_run"] == ["encode", "decode+eval"] and b["run_dir"] == a["run_dir"]
+        assert b["train_time_s"] == a["train_time_s"]
+        assert b["codec"]["positions"] == "sorted" and a["codec"]["positions"] == "raw16"
+        assert b["bytes"] < a["bytes"] and abs(b["psnr"] - a["psnr"]) < 0.01
+    assert "--codec compact-codec (positions = sorted, masks = patterns, grids = used)" in \
+        (out / "report.md").read_text()
+    again = run_compare(scene, out, vs=["predict-gs"], codec="compact-codec", **kw)
+    assert all(r["stages_run"] == [] for r in again["runs"])
+    back = run_compare(scene, out, vs=["predict-gs"], **kw)
+    for a, b in zip(first["runs"], back["runs"]):
+        assert b["stages_run"] == ["encode", "decode+eval"] and b["bytes"] == a["bytes"]
+    # archived records (no checkpoint) cannot be coded again: a clear error, nothing rewritten
+    from baseline.eval.compare import archive_records
+
+    arch = tmp_path / "arch"
+    archive_records(out, arch, back)
+    before = {p: p.read_bytes() for p in arch.rglob("compare.json")}
+    with pytest.raises(ValueError, match="kept only as records"):
+        run_compare(scene, arch, vs=["predict-gs"], codec="compact-codec", **kw)
+    assert {p: p.read_bytes() for p in arch.rglob("compare.json")} == before

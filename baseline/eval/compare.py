@@ -24,10 +24,15 @@ A run folder reduced to its records (``config.toml``, ``scene.json``, ``results.
 finished runs can be archived and a comparison completed later, on another machine, by copying
 them into its ``--out`` folder; only the missing runs are trained.
 
+``--codec PATCH`` (a patch that sets only ``[codec]`` keys, e.g. ``compact-codec``) applies
+codec settings at the encode stage of every run without touching training: a run recorded with
+other codec settings is encoded, decoded and measured again; its training is reused.
+
 Every number in the report is measured in one of these stages or read from their records.
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import re
 import time
@@ -245,9 +250,33 @@ def records_only(spec: RunSpec) -> bool:
     return not (spec.dir / MODEL_FILE).exists() and not (spec.dir / CHECKPOINT_NAME).exists()
 
 
-def _encoded(spec: RunSpec, record: dict) -> bool:
+def codec_overrides(patch: Optional[str]) -> dict:
+    """The ``[codec]`` settings patch ``patch`` changes (``{}`` for None); a patch that also
+    changes anything else is refused (``--codec`` must not change what is trained)."""
+    from baseline.config import to_dict
+
+    if not patch:
+        return {}
+    base, cfg = to_dict(build_config([]), drop_meta=True), to_dict(build_config([patch]), drop_meta=True)
+    other = sorted(f"{sec}.{k}" for sec, vals in cfg.items() if sec != "codec" and isinstance(vals, dict)
+                   for k, v in vals.items() if base.get(sec, {}).get(k) != v)
+    if other:
+        raise ValueError(f"--codec {patch}: a codec patch may set only [codec] keys; it also sets "
+                         f"{', '.join(other)} (give those with --patch or --vs)")
+    return {k: v for k, v in cfg["codec"].items() if base["codec"].get(k) != v}
+
+
+def run_codec(spec: RunSpec, overrides: Optional[dict] = None) -> dict:
+    """The codec settings a run's file is (to be) written with: its config's, then overrides."""
+    return {**dataclasses.asdict(spec.cfg.codec), **(overrides or {})}
+
+
+def _encoded(spec: RunSpec, record: dict, codec: Optional[dict] = None) -> bool:
     enc = record.get("encode")
     if not enc or record.get("config_hash") != spec.hash:
+        return False
+    # records from before codec settings were recorded were written with the run's own config's
+    if enc.get("codec", run_codec(spec)) != run_codec(spec, codec):
         return False
     pgs = spec.dir / MODEL_FILE
     if pgs.exists():
@@ -271,9 +300,10 @@ def _evaluated(record: dict, lpips: Optional[str]) -> bool:
     return lpips is None or (dec.get("lpips") is not None and dec.get("lpips_weights") == lpips)
 
 
-def is_finished(spec: RunSpec, lpips: Optional[str] = None) -> bool:
+def is_finished(spec: RunSpec, lpips: Optional[str] = None, codec: Optional[dict] = None) -> bool:
     record = _read_json(spec.dir / RECORD)
-    return _trained(spec) is not None and _encoded(spec, record) and _evaluated(record, lpips)
+    return (_trained(spec) is not None and _encoded(spec, record, codec)
+            and _evaluated(record, lpips))
 
 
 def _check_scene(spec: RunSpec, scene_path: str) -> None:
@@ -289,20 +319,24 @@ def _write_record(spec: RunSpec, record: dict) -> None:
     write_json_atomic(spec.dir / RECORD, record)
 
 
-def _stage_encode(spec: RunSpec, scene_path: str, record: dict) -> None:
+def _stage_encode(spec: RunSpec, scene_path: str, record: dict,
+                  codec: Optional[dict] = None) -> None:
     from baseline.codec.model_codec import encode_model, file_info
+    from baseline.config import CodecConfig
     from baseline.run import load_run
 
     trainer, _ = load_run(spec.dir, device="cpu")     # the codec runs on the CPU
     if trainer.phase != "adaptive":
         tqdm.write(f"note: {spec.label} stopped before the entropy model was trained "
                    f"(phase '{trainer.phase}'); its file is coded with an untrained context model")
-    st = encode_model(trainer.cfg, trainer.model, trainer.entropy, spec.dir / MODEL_FILE,
+    settings = run_codec(spec, codec)
+    cfg = dataclasses.replace(trainer.cfg, codec=CodecConfig(**settings))
+    st = encode_model(cfg, trainer.model, trainer.entropy, spec.dir / MODEL_FILE,
                       extra_header={"scene": scene_path})
     info = file_info(spec.dir / MODEL_FILE)
     record["encode"] = {"bytes": st["bytes"], "encode_s": st["encode_s"], "anchors": st["anchors"],
                         "phase": trainer.phase, "sections": info["sections"],
-                        "groups": info["groups"]}
+                        "groups": info["groups"], "codec": settings}
     _add_file_counts(record["encode"], info)
     record.pop("decoded", None)          # a new file: its decoded measurements are redone
     _write_record(spec, record)
@@ -365,12 +399,13 @@ def _stage_decoded(spec: RunSpec, scene_path: str, record: dict, lpips_fn,
 
 def run_one(spec: RunSpec, scene_path: str, lpips_fn=None, lpips: Optional[str] = None,
             progress: bool = True, on_stage: Optional[Callable[[str], None]] = None,
-            remeasure: bool = False) -> dict:
+            remeasure: bool = False, codec: Optional[dict] = None) -> dict:
     """Bring one run to the finished state (skipping stages already done); return its row.
 
     ``remeasure``: redo the encode and decode+eval stages of a trained run even when they are
     recorded (the same bytes are written again; times and FPS are retaken, e.g. on a quiet
-    machine after runs were trained side by side)."""
+    machine after runs were trained side by side). ``codec``: codec settings applied at the
+    encode stage (:func:`codec_overrides`); a file written with other settings is redone."""
     from baseline.train.trainer import set_threads
 
     stage = on_stage or (lambda s: None)
@@ -387,9 +422,13 @@ def run_one(spec: RunSpec, scene_path: str, lpips_fn=None, lpips: Optional[str] 
     record.update(method=spec.method.name, method_patches=list(spec.method.patches),
                   lmbda=spec.lmbda, config_hash=spec.hash, scene=scene_path)
     set_threads(spec.cfg.train.threads)
-    if not _encoded(spec, record):
+    if not _encoded(spec, record, codec):
+        if records_only(spec) and record.get("encode"):
+            raise ValueError(f"{spec.label} is kept only as records (no checkpoint), written "
+                             f"with codec settings {record['encode'].get('codec', run_codec(spec))}; "
+                             f"it cannot be encoded again with {run_codec(spec, codec)}")
         stage("encode")
-        _stage_encode(spec, scene_path, record)
+        _stage_encode(spec, scene_path, record, codec)
         done.append("encode")
     elif _fill_file_counts(spec, record):
         _write_record(spec, record)
@@ -416,6 +455,7 @@ def make_row(spec: RunSpec, res: dict, record: dict) -> dict:
         "lpips_weights": dec.get("lpips_weights"),
         "bytes": dec["bytes"], "mb": dec["bytes"] / MB,
         "sections": enc["sections"], "groups": enc["groups"],
+        "codec": enc.get("codec", run_codec(spec)),
         # counts read from the file; absent from records written before they were kept
         "attributes": enc.get("attributes"), "masks_on": enc.get("masks_on"),
         "iterations": res["iterations"], "train_time_s": res["train_time_s"],
@@ -496,7 +536,8 @@ def run_compare(scene: str | Path, out: str | Path, vs: list[str] = (),
                 sets: list[str] = (), lpips_weights: Optional[str] = None,
                 progress: bool = True, plots: bool = True, echo: bool = True,
                 only: Optional[list[str]] = None, remeasure: bool = False,
-                report_only: bool = False, reference: Optional[str] = None) -> dict:
+                report_only: bool = False, reference: Optional[str] = None,
+                codec: Optional[str] = None) -> dict:
     """Run (or resume) a comparison; write ``out/results.json``, ``out/report.md`` and plots.
 
     ``only``: bring only the runs of these methods (names as in the report: ``baseline``, a
@@ -512,6 +553,8 @@ def run_compare(scene: str | Path, out: str | Path, vs: list[str] = (),
     ``"scaffold"``: trained once (``--only reference`` trains just it), measured as the trained
     model on the test views plus its float32 size (:func:`float32_bytes`); the report then gives
     every run's size ratio and PSNR change against it.
+    ``codec``: a patch of ``[codec]`` settings applied when encoding every run (training and run
+    folders unchanged); e.g. ``"compact-codec"``.
     """
     from baseline.eval.metrics import load_lpips
     from baseline.eval.report import format_report, write_report
@@ -526,6 +569,7 @@ def run_compare(scene: str | Path, out: str | Path, vs: list[str] = (),
     methods = parse_methods(list(vs))
     if lambdas is not None and len(set(lambdas)) != len(lambdas):
         raise ValueError(f"--lambda lists a value twice: {lambdas}")
+    codec_over = codec_overrides(codec)
     specs = plan_runs(out, methods, lambdas, list(common_patches), list(sets))
     ref_method = parse_reference(reference)
     ref_spec = (plan_reference(out, ref_method, list(common_patches), list(sets))
@@ -550,6 +594,7 @@ def run_compare(scene: str | Path, out: str | Path, vs: list[str] = (),
         "common_patches": list(common_patches),
         "sets": list(sets),
         "lambdas": None if lambdas is None else [float(x) for x in lambdas],
+        "codec": {"patch": codec, "settings": codec_over} if codec else None,
         "lpips": f"measured with {lp_id}" if lpips_fn is not None else lpips_reason,
         "only": list(only) if only else None,
         "reference": None,
@@ -560,7 +605,7 @@ def run_compare(scene: str | Path, out: str | Path, vs: list[str] = (),
         "missing": [],
         "runs": [],
     }
-    finished = [is_finished(s, lp_id) for s in specs]          # reads each run's records once
+    finished = [is_finished(s, lp_id, codec_over) for s in specs]   # reads each run's records once
     n_done = 0 if remeasure else sum(finished)
     if echo and methods:
         print(f"compare: {len(methods)} method(s) x {len(specs) // len(methods)} rate point(s) = "
@@ -605,7 +650,7 @@ def run_compare(scene: str | Path, out: str | Path, vs: list[str] = (),
                 tqdm.write(f"{head}: {s} ({spec.dir})")
 
         row = run_one(spec, scene_path, lpips_fn, lp_id, progress=progress, on_stage=on_stage,
-                      remeasure=remeasure)
+                      remeasure=remeasure, codec=codec_over)
         results["runs"].append(row)
         write_json_atomic(out / "results.json", results)       # partial results survive
         if echo:

@@ -18,6 +18,7 @@ Tables:
 """
 from __future__ import annotations
 
+import json
 import math
 from pathlib import Path
 from typing import Callable, Optional
@@ -443,6 +444,7 @@ def protocol_lines(results: dict) -> list[tuple[str, str]]:
                               for m in results.get("methods", []))),
         ("common patches", ", ".join(results.get("common_patches", [])) or "(none)"),
         ("--set", ", ".join(results.get("sets", [])) or "(none)"),
+        ("codec", _codec_line(results, runs)),
         ("iterations", per_method("iterations")),
         ("threads", per_method("threads")),
         ("device", per_method("device")),
@@ -463,6 +465,16 @@ def protocol_lines(results: dict) -> list[tuple[str, str]]:
         items.append(("from records", ", ".join(kept) + ": reported from their archived records "
                       "(measured when they were trained; no model file here)"))
     return items
+
+
+def _codec_line(results: dict, runs: list) -> str:
+    """How the files were coded: HAC's layout, or the --codec patch's settings (encode only)."""
+    c = results.get("codec")
+    if c and c.get("patch"):
+        sets = ", ".join(f"{k} = {v}" for k, v in c.get("settings", {}).items())
+        return f"--codec {c['patch']} ({sets}), applied when encoding; training unchanged"
+    kinds = {json.dumps(r.get("codec"), sort_keys=True) for r in runs if r.get("codec")}
+    return "each run's own configuration" + (" (several settings)" if len(kinds) > 1 else "")
 
 
 def _reference_line(results: dict) -> str:
