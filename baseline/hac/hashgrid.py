@@ -509,7 +509,8 @@ class BinaryHashGrid(nn.Module):
                  ((x.double() - lo64) / (hi64 - lo64), True)]
         out = []
         for k, g in self.grids.items():
-            rows = np.zeros(g.params.shape[0], dtype=bool)
+            n_rows = g.params.shape[0]
+            rows = torch.zeros(n_rows + 1, dtype=torch.bool)    # the last slot: weight-0 corners
             for u, exact in paths:
                 uc = u[:, list(self._axes[k])]
                 inside = ((uc >= 0) & (uc <= 1)).all(dim=-1)
@@ -518,8 +519,8 @@ class BinaryHashGrid(nn.Module):
                 ui, step = uc[inside], self.chunk or 65536
                 for s in range(0, ui.shape[0], step):
                     idx, w = g.corner_indices(ui[s:s + step], exact=exact)
-                    rows[idx[w > 0].reshape(-1).long().numpy()] = True
-            out.append(np.repeat(rows, g.params.shape[1]))
+                    rows[torch.where(w > 0, idx.long(), n_rows).reshape(-1)] = True
+            out.append(np.repeat(rows[:n_rows].numpy(), g.params.shape[1]))
         return np.concatenate(out) if out else np.zeros(0, dtype=bool)
 
     def encode_bits(self, used: Optional[np.ndarray] = None) -> bytes:
