@@ -11,34 +11,11 @@
 #   .carry/cams.pt            their test cameras (python tools/gpu_fps.py export FILE -o ...)
 # Run there:  bash tools/device_check.sh [SECONDS_FOR_THE_FULL_SUITE]
 set -uo pipefail
-export PYTHONUNBUFFERED=1
-OUT=${OUT:-/tmp/pgs-device-out}
-mkdir -p "$OUT"
 SUITE_S=${1:-150}
-t0=$(date +%s)
-stamp() { echo "[$(( $(date +%s) - t0 )) s] $*"; }
-
+source tools/device_setup.sh
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv | tee "$OUT/gpu.txt"
 python3 -c "import torch; print('torch', torch.__version__, 'cuda', torch.version.cuda)" \
     | tee -a "$OUT/gpu.txt"
-nproc | tee -a "$OUT/gpu.txt"
-
-tar -xJf .carry/site.tar.xz -C /tmp || exit 1
-SITE=/tmp/devsite
-# The project itself, registered for importlib.metadata (its plugin is an entry point).
-d=$SITE/predict_gs_toolkit-0.1.0.dist-info
-mkdir -p "$d"
-printf 'Metadata-Version: 2.1\nName: predict-gs-toolkit\nVersion: 0.1.0\n' >"$d/METADATA"
-printf '[pgs.plugins]\npredict = predict_plugin:register\n\n[console_scripts]\npgs = baseline.cli:main\n' \
-    >"$d/entry_points.txt"
-export PYTHONPATH=$SITE:$PWD
-export OMP_NUM_THREADS=$(nproc) NUMBA_NUM_THREADS=$(nproc)
-stamp "unpacked"
-
-# gsplat's CUDA extension, ahead of time (its wheel would JIT-compile on first use)
-TORCH_CUDA_ARCH_LIST=9.0 MAX_JOBS=$(nproc) python3 tools/build_gsplat_ext.py $SITE/gsplat \
-    >"$OUT/build.log" 2>&1
-stamp "gsplat build rc=$?"
 python3 -c "from gsplat import csrc; import gsplat; print('gsplat', gsplat.__version__, csrc.__file__)" \
     2>&1 | tail -2
 

@@ -71,7 +71,7 @@ def mask_pattern_counts(blob, what: str = "masks") -> Tuple[int, int]:
     """``(n values = N K, n on)`` from the stream's table, without decoding the symbols."""
     buf, n, k = _header(blob, what)
     uniq, counts, _ = _table(buf, n, k, what)
-    ones = np.array([bin(int(u)).count("1") for u in uniq], np.int64)
+    ones = ((uniq[:, None] >> np.arange(k, dtype=np.uint64)) & np.uint64(1)).sum(1, dtype=np.int64)
     return n * k, int((ones * counts).sum())
 
 

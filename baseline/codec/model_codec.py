@@ -42,6 +42,7 @@ from baseline.codec.rangecoder import (anchor_bounds, bernoulli_counts, decode_b
                                        dequantize_positions, encode_bernoulli, pack_positions,
                                        quantize_positions, unpack_positions)
 from baseline.codec.weights import pack_state_dict, round_module_, unpack_state_dict
+from baseline.config import GRID_CODINGS
 from baseline.contracts import feature_cache
 
 FORMAT = "pgs-anchor-model"
@@ -151,7 +152,7 @@ def encode_model(cfg, model, entropy, path: str | Path, extra_header: Optional[d
         raise ValueError(f"codec.masks: unknown coding {mask_coding!r}")
     sections: list[tuple[str, bytes]] = [("positions", pos_blob), ("masks", mask_blob)]
     grid_coding = cfg.codec.grids
-    if grid_coding not in ("all", "used"):
+    if grid_coding not in GRID_CODINGS:
         raise ValueError(f"codec.grids: unknown coding {grid_coding!r}")
     used_xyz = xyz_q if grid_coding == "used" else None
     em = entropy.serialize(precision, used_xyz=used_xyz)   # rounds its weights first
@@ -289,7 +290,7 @@ def decode_model(path: str | Path) -> DecodedModel:
     except (ValueError, TypeError) as e:
         raise BitstreamError(f"{path}: header 'module_state' does not fit the modules: {e}") from None
     grid_coding = header.get("grid_coding", "all")
-    if grid_coding not in ("all", "used"):
+    if grid_coding not in GRID_CODINGS:
         raise BitstreamError(f"{path}: unknown grid coding {grid_coding!r} in the header")
     used_xyz = xyz if grid_coding == "used" else None
     entropy = build_entropy_model(ent_cfg)

@@ -215,9 +215,9 @@ def decode_positions(blob, n: int, what: str = "section 'positions'") -> np.ndar
         raise BitstreamError(f"{what}: Morton codes overflow 48 bits")
     idx = unmorton(m).astype(np.int64)
     out = np.zeros((n, 3), np.uint16)
-    for a in range(3):
-        if n and int(idx[:, a].max()) >= dicts[a].size:
+    for a in range(3 if n else 0):
+        if int(idx[:, a].max()) >= dicts[a].size:
             raise BitstreamError(f"{what}: an index exceeds the {'xyz'[a]} dictionary "
                                  f"({dicts[a].size} values)")
-        out[:, a] = dicts[a][idx[:, a]] if n else out[:, a]
+        out[:, a] = dicts[a][idx[:, a]]
     return out
