@@ -230,3 +230,22 @@ def test_alive_table_splits_gaussians_per_view():
                                               "(+0.0%)", "52000", "(+30.0%)"]
     assert ("not shown (records archived before this breakdown was kept): entropy-factorized"
             in txt)
+
+
+def test_rate_term_line_says_what_one_lambda_weighs_per_method():
+    """HAC's rate term is bits per coded parameter: at one lambda a method coding fewer values
+    per anchor weighs each bit more (here 80 vs 55 values: 1.45x); archived rows without counts
+    leave their method out; with no counts at all the line says so."""
+    from baseline.eval.report import protocol_lines, rate_elements
+
+    res = stored_results()
+    assert "E not in these records" in dict(protocol_lines(res))["rate term"]
+    res = _with_counts(res)
+    assert [rate_elements(r) for r in res["runs"][:2]] == [80, 55]
+    for r in res["runs"]:
+        if r["method"] == "entropy-factorized":
+            r.pop("attributes")
+    line = dict(protocol_lines(res))["rate term"]
+    assert ": baseline 80, predict-gs 55;" in line
+    assert "against baseline's: predict-gs 1.45x" in line and "entropy-factorized" not in line
+    assert "rate term" in format_report(res)

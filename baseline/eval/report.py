@@ -445,6 +445,7 @@ def protocol_lines(results: dict) -> list[tuple[str, str]]:
         ("common patches", ", ".join(results.get("common_patches", [])) or "(none)"),
         ("--set", ", ".join(results.get("sets", [])) or "(none)"),
         ("codec", _codec_line(results, runs)),
+        ("rate term", _rate_term_line(results, runs)),
         ("iterations", per_method("iterations")),
         ("threads", per_method("threads")),
         ("device", per_method("device")),
@@ -475,6 +476,37 @@ def _codec_line(results: dict, runs: list) -> str:
         return f"--codec {c['patch']} ({sets}), applied when encoding; training unchanged"
     kinds = {json.dumps(r.get("codec"), sort_keys=True) for r in runs if r.get("codec")}
     return "each run's own configuration" + (" (several settings)" if len(kinds) > 1 else "")
+
+
+def rate_elements(row: dict) -> Optional[int]:
+    """Coded values per anchor of a run (the sum of its coded attributes' dims; offsets count
+    all K x 3 whatever the masks), read from its record; None for records kept without them."""
+    attrs = row.get("attributes")
+    return sum(int(a["dims"]) for a in attrs) if attrs else None
+
+
+def _rate_term_line(results: dict, runs: list) -> str:
+    """What one lambda means per method: the rate term is HAC's bits per coded parameter,
+    lambda x bits / (sampled anchors x E), so a method coding fewer values per anchor (E) weighs
+    each bit more at the same lambda (Predict-GS: E = 25 + 6 + 30 = 61 against HAC's 86)."""
+    per_method = {}
+    for r in runs:
+        e = rate_elements(r)
+        if e is not None:
+            per_method.setdefault(r["method"], e)
+    line = ("lambda x bits / (sampled anchors x E), E = coded values per anchor (HAC's bits per "
+            "parameter)")
+    if not per_method:
+        return line + " (E not in these records)"
+    line += ": " + ", ".join(f"{m} {e}" for m, e in per_method.items())
+    ref_name = results.get("baseline", "baseline")
+    ref_m = ref_name if ref_name in per_method else next(iter(per_method))
+    ref_e = per_method[ref_m]
+    other = [f"{m} {ref_e / e:.2f}x" for m, e in per_method.items() if e != ref_e]
+    if other:
+        line += (f"; at one lambda a coded bit weighs, against {ref_m}'s: " + ", ".join(other)
+                 + " (equal lambda is not equal rate pressure: compare at equal PSNR, BD-rate)")
+    return line
 
 
 def _reference_line(results: dict) -> str:
