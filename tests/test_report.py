@@ -248,4 +248,4 @@ def test_rate_term_line_says_what_one_lambda_weighs_per_method():
     line = dict(protocol_lines(res))["rate term"]
     assert ": baseline 80, predict-gs 55;" in line
     assert "against baseline's: predict-gs 1.45x" in line and "entropy-factorized" not in line
-    assert "rate term" in format_report(res)
+    assert "rate term" in format_report(res) and "predict-gs 1.45x" in format_report(res)

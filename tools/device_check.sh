@@ -16,6 +16,7 @@ source tools/device_setup.sh
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv | tee "$OUT/gpu.txt"
 python3 -c "import torch; print('torch', torch.__version__, 'cuda', torch.version.cuda)" \
     | tee -a "$OUT/gpu.txt"
+nproc | tee -a "$OUT/gpu.txt"
 python3 -c "from gsplat import csrc; import gsplat; print('gsplat', gsplat.__version__, csrc.__file__)" \
     2>&1 | tail -2
 
