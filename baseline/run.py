@@ -101,7 +101,7 @@ def coding_positions(trainer: Trainer):
         return None
     from baseline.pipeline import quantized_positions
 
-    return quantized_positions(trainer.model.xyz)
+    return quantized_positions(trainer.model.xyz, trainer.model.anchor_valid())
 
 
 def evaluate_trainer(trainer: Trainer, scene, render_dir: Optional[Path] = None, lpips_fn=None) -> dict:

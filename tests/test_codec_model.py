@@ -43,7 +43,7 @@ def encoded(request, scene, tmp_path_factory):
     d = tmp_path_factory.mktemp(f"codec_{request.param}")
     patches = () if request.param == "baseline" else ("predict-gs",)
     t = _trained(scene, d / "run", patches)
-    xyz_q_all = quantized_positions(t.model.xyz)
+    xyz_q_all = quantized_positions(t.model.xyz, t.model.anchor_valid())
     pre = evaluate(t.model, scene, scene.test_cameras, phase="adaptive", entropy=t.entropy,
                    backend="cpu", quantized_xyz=xyz_q_all, render_dir=d / "pre")
     st = encode_model(t.cfg, t.model, t.entropy, d / "m.pgs", extra_header={"scene": "x"})
