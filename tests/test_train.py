@@ -113,6 +113,47 @@ def test_default_threads_follow_omp_num_threads(env, want):
     assert out.stdout.split() == [str(n), str(n)]
 
 
+_ONE_THREAD_CODE = {
+    "trainer": "from baseline.train.trainer import set_threads; set_threads(1); ",
+    "renderer": "torch.set_num_threads(1); ",
+}
+
+
+@pytest.mark.parametrize("path, layer", [("trainer", ""), ("trainer", "omp"),
+                                         ("trainer", "workqueue"), ("renderer", "omp")])
+def test_one_thread_stays_one_thread_once_numba_starts(path, layer):
+    """One thread asked for (by `set_threads(1)`, or by torch before the first kernel) stays one
+    thread in torch and the CPU kernels after numba's pool starts, whatever its threading layer.
+    Starting numba's OpenMP layer resets the thread's OpenMP count to NUMBA_NUM_THREADS (torch
+    shares the libgomp): `train.threads = 1` ran torch and the kernels on 2 threads, and two
+    such trainings side by side ran 8x slower than they should."""
+    import os
+    import subprocess
+    import sys
+
+    from baseline.train.trainer import available_cores
+
+    if available_cores() < 2:
+        pytest.skip("needs 2 cores to tell 1 thread from all")
+    # torch.get_num_threads() first, as the CLI does before training: it initializes torch's
+    # OpenMP state, after which (here) starting numba's OpenMP pool resets the count
+    code = ("import torch; torch.get_num_threads(); " + _ONE_THREAD_CODE[path]
+            + "from baseline.render import cpu; k = cpu._apply_threads(); import numba; "
+              "print(torch.get_num_threads(), k, numba.get_num_threads(), numba.threading_layer())")
+    env = {k: v for k, v in os.environ.items()
+           if k not in ("OMP_NUM_THREADS", "NUMBA_NUM_THREADS", "NUMBA_THREADING_LAYER")}
+    if layer:
+        env["NUMBA_THREADING_LAYER"] = layer
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env)
+    if out.returncode and "threading layer" in out.stderr.lower():
+        pytest.skip(f"numba's {layer} layer is not available here")
+    assert out.returncode == 0, out.stderr
+    torch_n, kernel_n, numba_n, used = out.stdout.split()
+    assert (torch_n, kernel_n, numba_n) == ("1", "1", "1"), used
+    if layer:
+        assert used == layer
+
+
 def test_mask_lr_scales_with_the_schedule_only_when_asked(scene_dir, tmp_path):
     """lr.mask_schedule_scaled multiplies the mask logits' lr (start and end) by
     schedule_base / iterations, and no other group's; off by default."""

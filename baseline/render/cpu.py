@@ -14,11 +14,11 @@ cached on disk by numba (``cache=True``, in ``__pycache__`` next to the module o
 
 Threading layer: unless the user chose one (``NUMBA_THREADING_LAYER`` or
 ``numba.config.THREADING_LAYER``), numba's ``workqueue`` layer is selected before the first
-parallel launch. GNU OpenMP (numba's default here) keeps its workers spinning after each
-kernel; on a busy 2-core machine that was measured to slow the small PyTorch conversions
-between the kernels ~50x (about 50 ms per 50k-Gaussian forward), and it is not fork-safe
-(data-loader workers). ``workqueue`` is not safe for
-concurrent calls from several Python threads, so kernel launches here are serialized by a lock.
+parallel launch (training starts numba's default instead: see :func:`_configure_numba`).
+GNU OpenMP (numba's default here) keeps its workers spinning after each kernel; on a busy
+2-core machine that was measured to slow the small PyTorch conversions between the kernels
+~50x (about 50 ms per 50k-Gaussian forward), and it is not fork-safe (data-loader workers).
+``workqueue`` is not safe for concurrent calls from several Python threads, so kernel launches here are serialized by a lock.
 Tiles differ a lot in cost, so the raster kernels are scheduled dynamically in small chunks
 (``numba.parallel_chunksize``).
 """
@@ -67,6 +67,7 @@ def get_num_threads() -> int:
 def _apply_threads() -> int:
     import numba
 
+    _configure_numba()
     n = get_num_threads()
     numba.set_num_threads(n)
     return n
@@ -109,11 +110,38 @@ def kernels():
         return _K
 
 
-def _configure_numba() -> None:
+_NUMBA_STARTED = False
+
+
+def _configure_numba(layer: str = "workqueue") -> None:
+    """Select numba's threading layer (unless the user chose one) and start its thread pool,
+    keeping torch's thread count. Only the first call in a process has an effect.
+
+    ``layer``: ``"workqueue"`` (the renderer's choice, see the module docstring) or
+    ``"default"`` (numba's own order: GNU OpenMP here, tbb not being installed). Training asks
+    for ``"default"`` (:func:`baseline.train.trainer.set_threads`): on a quiet 2-core machine
+    OpenMP measured faster there (truck ``-r 4`` 0.195 vs 0.220 s/it, synthetic scene 0.086 vs
+    0.107 s/it at 2 threads; two 1-thread trainings side by side 0.113-0.124 vs 0.103-0.105
+    s/it), and it is what every training recorded so far ran with.
+
+    Starting the OpenMP layer resets the calling thread's OpenMP thread count to
+    ``NUMBA_NUM_THREADS`` (numba and torch share one ``libgomp``): before this restored it,
+    ``train.threads = 1`` ran torch and the kernels on 2 threads, and two such trainings side
+    by side ran 4 spinning threads on 2 cores (3.2 s/it on truck instead of ~0.4).
+    """
+    global _NUMBA_STARTED
+    if _NUMBA_STARTED:
+        return
     import numba
 
-    if "NUMBA_THREADING_LAYER" not in os.environ and numba.config.THREADING_LAYER == "default":
-        numba.config.THREADING_LAYER = "workqueue"  # no-op once numba has launched threads
+    if ("NUMBA_THREADING_LAYER" not in os.environ and numba.config.THREADING_LAYER == "default"
+            and layer != "default"):
+        numba.config.THREADING_LAYER = layer  # no-op once numba has launched threads
+    n = torch.get_num_threads()
+    numba.get_num_threads()  # launches the pool
+    if torch.get_num_threads() != n:
+        torch.set_num_threads(n)
+    _NUMBA_STARTED = True
 
 
 def _warmup(K) -> None:

@@ -59,13 +59,16 @@ def set_threads(n: int) -> int:
     cores."""
     cores = available_cores()
     n = default_threads() if n <= 0 else min(n, cores)
-    torch.set_num_threads(n)
     try:
         import numba
 
+        from baseline.render.cpu import _configure_numba
+
+        _configure_numba("default")  # first: starting the pool may reset torch's threads
         numba.set_num_threads(min(n, numba.config.NUMBA_NUM_THREADS))
-    except Exception:  # numba absent or threads fixed by the environment
+    except ImportError:  # numba absent
         pass
+    torch.set_num_threads(n)
     return n
 
 
