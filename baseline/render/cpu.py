@@ -118,11 +118,13 @@ def _configure_numba(layer: str = "workqueue") -> None:
     keeping torch's thread count. Only the first call in a process has an effect.
 
     ``layer``: ``"workqueue"`` (the renderer's choice, see the module docstring) or
-    ``"default"`` (numba's own order: GNU OpenMP here, tbb not being installed). Training asks
-    for ``"default"`` (:func:`baseline.train.trainer.set_threads`): on a quiet 2-core machine
-    OpenMP measured faster there (truck ``-r 4`` 0.195 vs 0.220 s/it, synthetic scene 0.086 vs
-    0.107 s/it at 2 threads; two 1-thread trainings side by side 0.113-0.124 vs 0.103-0.105
-    s/it), and it is what every training recorded so far ran with.
+    ``"default"`` (numba's own order: GNU OpenMP here, tbb not being installed).
+    :func:`baseline.train.trainer.set_threads` asks for ``"default"``, so a ``pgs train``
+    process trains with OpenMP, as before; ``pgs compare`` renders before it trains, so its
+    trainings have used ``workqueue``. Measured on 2 cores: one training at 2 threads, OpenMP
+    faster (truck ``-r 4`` first 500 iterations 0.195 vs 0.220 s/it; synthetic scene 0.086 vs
+    0.107); two 1-thread trainings side by side, ``workqueue`` faster (synthetic 0.103-0.105 vs
+    0.113-0.124 s/it). ``NUMBA_THREADING_LAYER`` picks one for any process.
 
     Starting the OpenMP layer resets the calling thread's OpenMP thread count to
     ``NUMBA_NUM_THREADS`` (numba and torch share one ``libgomp``): before this restored it,
