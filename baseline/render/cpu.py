@@ -18,7 +18,8 @@ parallel launch (training starts numba's default instead: see :func:`_configure_
 GNU OpenMP (numba's default here) keeps its workers spinning after each kernel; on a busy
 2-core machine that was measured to slow the small PyTorch conversions between the kernels
 ~50x (about 50 ms per 50k-Gaussian forward), and it is not fork-safe (data-loader workers).
-``workqueue`` is not safe for concurrent calls from several Python threads, so kernel launches here are serialized by a lock.
+``workqueue`` is not safe for concurrent calls from several Python threads, so kernel launches
+here are serialized by a lock.
 Tiles differ a lot in cost, so the raster kernels are scheduled dynamically in small chunks
 (``numba.parallel_chunksize``).
 """
