@@ -36,9 +36,10 @@ def quantized_positions(xyz: torch.Tensor, coded: torch.Tensor) -> torch.Tensor:
 
     ``coded`` [N] bool, required (no all-anchors default: that was the bug): the anchors the
     encoder writes (``model.anchor_valid()``); the bounds come from those alone, as in the file,
-    so the pre-encode evaluation sees the positions the decoder will have. (Bounds over all anchors moved every position whenever an anchor with
-    every mask off lay outside the coded ones' box: 26.156 dB before vs 26.198 decoded on a
-    truck run.) Anchors outside the bounds are clipped; they are never coded.
+    so the pre-encode evaluation sees the positions the decoder will have. (Bounds over all
+    anchors moved every position whenever an anchor with every mask off lay outside the coded
+    ones' box: 26.156 dB before vs 26.198 decoded on a truck run.) Anchors outside the bounds
+    are clipped; they are never coded.
     """
     from baseline.codec.rangecoder import anchor_bounds, dequantize_positions, quantize_positions
 

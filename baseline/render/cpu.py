@@ -130,7 +130,8 @@ def _configure_numba(layer: str = "workqueue") -> None:
     Starting the OpenMP layer resets the calling thread's OpenMP thread count to
     ``NUMBA_NUM_THREADS`` (numba and torch share one ``libgomp``): before this restored it,
     ``train.threads = 1`` ran torch and the kernels on 2 threads, and two such trainings side
-    by side ran 4 spinning threads on 2 cores (3.2 s/it on truck instead of ~0.4).
+    by side ran 4 spinning threads on 2 cores (3.2 s/it on truck's first iterations instead of
+    0.23).
     """
     global _NUMBA_STARTED
     if _NUMBA_STARTED:
