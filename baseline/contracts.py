@@ -15,6 +15,11 @@ it from the decoded (grown and pruned) anchors.
 A provider whose features depend on the anchor positions only (Predict-GS's SFP) may also define
 ``build_cache(xyz)`` / ``clear_cache()``: decoded models compute the features once
 (:func:`feature_cache` finds such a provider).
+
+A refiner may also declare its heads for baking (``bake_heads(values) -> list[BakeHead]``, see
+:mod:`baseline.scaffold.baked`): a decoded model then computes the view-independent part of the
+decoder's and the refiner's first layers once (on CUDA, where that was measured faster). A
+refiner that does not declare them still works; its decoded models render unbaked.
 """
 from __future__ import annotations
 

@@ -78,6 +78,12 @@ def render_view(model, cam: Camera, background: torch.Tensor, *, phase: str = "n
             evaluation, straight-through gradient; the rate is still estimated with noise).
     """
     idx = visible_anchors(model, cam)
+    if phase == "decoded" and getattr(model, "baked", None) is not None \
+            and not torch.is_grad_enabled():
+        g = model.baked.decode(cam.center, idx)          # the decoded model's baked form
+        out = rasterize(g.means, g.quats, g.scales, g.opacities, g.colors, cam,
+                        background=background, backend=backend)
+        return ViewResult(render=out, gaussians=g, camera=cam, bits={}, n_rate_anchors=0)
     values = model.coded_values(idx)
     xyz = model.xyz[idx]
     bits: dict = {}

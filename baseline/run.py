@@ -151,6 +151,7 @@ class Renderable:
             self.decoded = dec
             self.cfg, self.model, self.phase = dec.cfg, dec.model, "decoded"
             self.model.to(resolve_device(device or self.cfg.train.device))
+            self.model.bake_if_faster()
             scene_path = scene_override or dec.header.get("scene")
             if not scene_path:
                 raise ValueError(f"{target} does not record its scene; pass --scene PATH")

@@ -41,6 +41,15 @@ class MGRD(nn.Module):
         app = self.appearance_head(x).view(-1, K, 4)
         return {"opacity": app[..., 0], "color": app[..., 1:4], "cov": shape}
 
+    def bake_heads(self, values):
+        """Both heads for :class:`~baseline.scaffold.baked.BakedDecoder` (values: all anchors'
+        decoded values): shape -> cov, appearance -> opacity (channel 0) and color (1-3)."""
+        from baseline.scaffold.baked import BakeHead
+
+        r = values["residual"]
+        return [BakeHead(r, self.shape_head, True, {"cov": (0, 7)}),
+                BakeHead(r, self.appearance_head, True, {"opacity": (0, 1), "color": (1, 4)})]
+
     def param_groups(self, cfg):
         p = cfg.ext["predict"]
         return [dict(name="mgrd", params=list(self.parameters()), lr_init=p.lr_mgrd_init,

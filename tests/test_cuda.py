@@ -135,3 +135,36 @@ def test_gpu_run_encodes_on_the_cpu_and_decodes_exactly(cuda_run):
         assert prov._cache.is_cuda
         cached = evaluate(dec.model, scene, cams, phase="decoded", backend="auto")
         assert abs(cached["psnr"] - post_gpu["psnr"]) < 1e-3
+
+
+@needs_cuda
+def test_baked_decoding_on_the_gpu(cuda_run):
+    """A decoded model baked after moving to the GPU, and one baked on the CPU then moved,
+    decode the Gaussians of the plain form there, and render the same images."""
+    run = cuda_run["dir"] / "run"
+    t, scene = load_run(run, device="cpu")
+    path = cuda_run["dir"] / "baked.pgs"
+    encode_model(t.cfg, t.model, t.entropy, path, extra_header={"scene": "x"})
+    from baseline.pipeline import visible_anchors
+
+    for where in ("baked on the gpu", "baked on the cpu, moved"):
+        m = decode_model(path).model
+        if where.startswith("baked on the cpu"):
+            assert m.bake()
+            m.to("cuda")
+        else:
+            m.to("cuda")
+            assert m.bake()
+        assert m.baked.P.is_cuda and m.baked.gmask.is_cuda
+        assert m.bake_if_faster() and m.baked is not None          # on CUDA: baked
+        for cam in scene.test_cameras:
+            idx = visible_anchors(m, cam)
+            with torch.no_grad():
+                a = m.decode(cam.center, idx)
+                b = m.baked.decode(cam.center, idx)
+            assert torch.equal(a.anchor_index, b.anchor_index), where
+            assert torch.allclose(a.colors, b.colors, atol=1e-4) and torch.equal(a.means, b.means)
+        baked = evaluate(m, scene, scene.test_cameras, phase="decoded", backend="auto")
+        m.baked = None
+        plain = evaluate(m, scene, scene.test_cameras, phase="decoded", backend="auto")
+        assert abs(baked["psnr"] - plain["psnr"]) < 1e-3, (where, baked, plain)

@@ -1,6 +1,7 @@
 """pgs bench fps: decoded models timed on the same views, rounds in rotated order, ratios to the
 first. Correctness only (the arithmetic, the order, the contenders, errors); never wall-clock."""
 import math
+import statistics
 import shutil
 
 import pytest
@@ -70,10 +71,20 @@ def test_bench_rows_contenders_and_counts(files):
     res = bench_files([str(files["baseline"]), str(files["predict-gs"] / "model.pgs")], rounds=2,
                       threads=1)
     labels = [r["label"] for r in res["rows"]]
-    # the baseline has no cache; Predict-GS is timed with its f_c cache and without
-    assert labels == ["baseline", "model", "model (no cache)"]
+    # each model plain and baked; Predict-GS also without its f_c cache
+    assert labels == ["baseline", "baseline (baked)", "model", "model (baked)",
+                      "model (no cache)"]
+    assert [r["form"] for r in res["rows"]] == ["plain", "baked", "plain", "baked", "no cache"]
     ref = res["rows"][0]
     assert ref["ratio"] == ref["ratio_min"] == ref["ratio_max"] == 1.0
+    # like-with-like ratios: baked against the baseline's baked form, the rest against plain
+    assert [r["ref_form"] for r in res["rows"]] == ["baseline", "baseline (baked)", "baseline",
+                                                    "baseline (baked)", "baseline"]
+    rows = res["rows"]
+    for r in (rows[1], rows[3]):
+        same = [a / b for a, b in zip(rows[1]["seconds"], r["seconds"])]
+        assert r["ratio_form"] == pytest.approx(statistics.median(same))
+    assert rows[1]["ratio_form"] == 1.0 and rows[4]["ratio_form"] == rows[4]["ratio"]
     for r in res["rows"]:
         assert len(r["seconds"]) == 2 and all(s > 0 for s in r["seconds"])
         assert math.isfinite(r["fps"]) and r["fps_min"] <= r["fps"] <= r["fps_max"]
@@ -88,20 +99,25 @@ def test_bench_rows_contenders_and_counts(files):
         assert row["gaussians_per_view"] == pytest.approx(ev["gaussians_mean"])
     assert res["views"] == len(sc.test_cameras) and res["split"] == "test"
     body = format_fps_bench(res).splitlines()[3:-1]              # one line per row, in order
-    assert [ln.startswith(r["label"] + " ") for ln, r in zip(body, res["rows"])] == [True] * 3
-    assert body[0].split()[-1] == "ref"                             # the reference row
+    assert [ln.startswith(r["label"] + " ") for ln, r in zip(body, res["rows"])] == [True] * 5
+    assert body[0].split()[-2:] == ["ref", "ref"]                   # the reference row
+    assert body[1].split()[-1] == "ref"                 # the first model's baked form
     for ln, r in zip(body[1:], res["rows"][1:]):
-        assert ln.split()[-2:] == [f"{r['ratio']:.3f}", f"{r['ratio_min']:.3f}-{r['ratio_max']:.3f}"]
+        assert f"{r['ratio']:.3f} {r['ratio_min']:.3f}-{r['ratio_max']:.3f}" in " ".join(ln.split())
+    for ln, r in zip(body[2:], res["rows"][2:]):
+        assert ln.split()[-2:] == [f"{r['ratio_form']:.3f}",
+                                   f"{r['ratio_form_min']:.3f}-{r['ratio_form_max']:.3f}"]
     # decoded models are left as decoded: the f_c cache built again after the no-cache rounds
     dec = decode_model(files["predict-gs"] / "model.pgs")
     contenders = fpsbench.contenders_of("m", dec.model)
     run_fps_bench(contenders, sc.test_cameras[:1], sc.background.float(), rounds=1)
-    assert dec.model.provider._cache is not None
+    assert dec.model.provider._cache is not None and dec.model.baked is None
 
 
 def test_same_file_twice_gets_distinct_labels(files):
     res = bench_files([str(files["baseline"])] * 2, rounds=1, threads=1, max_views=1)
-    assert [r["label"] for r in res["rows"]] == ["baseline", "baseline'"]
+    assert [r["label"] for r in res["rows"]] == ["baseline", "baseline (baked)", "baseline'",
+                                             "baseline' (baked)"]
     assert res["views"] == 1
 
 
@@ -176,8 +192,11 @@ def test_frame_bench_times_each_stage_against_its_reference_form(files, capsys):
             assert len(st[k]["new"]) == 2 and all(t > 0 for t in st[k]["new"])
         assert all(t > 0 for t in st["prefilter"]["ref"] + st["decode"]["ref"])
         assert st["rasterize"]["ref"] is None
+        # baked decoding, timed against decode (its reference) and checked to keep the same
+        assert st["baked"]["ref"] == st["decode"]["new"] and all(t > 0 for t in st["baked"]["new"])
     text = format_frame_bench(res)
     assert text.count("\nprefilter ") == 2 and text.count("\nframe ") == 2
+    assert text.count("\nbaked dec ") == 2
     with pytest.raises(ValueError, match="rounds must be"):
         bench_frame_files([str(files["baseline"])], rounds=0)
     assert main(["bench", "frame", "--run", str(files["predict-gs"]), "--rounds", "1",
@@ -212,6 +231,8 @@ def test_gpu_fps_tool_exports_cameras_and_times_at_each_scale(files, tmp_path):
     assert f"{w}x{h} (scale 1)" in res[0]["protocol"]
     assert f"{2 * w}x{2 * h} (scale 2)" in res[1]["protocol"]
     for r in res:
-        assert [row["label"] for row in r["rows"]] == ["baseline", "predict-gs",
+        assert [row["label"] for row in r["rows"]] == ["baseline", "baseline (baked)",
+                                                      "predict-gs", "predict-gs (baked)",
                                                       "predict-gs (no cache)"]
+        assert r["rows"][3]["ref_form"] == "baseline (baked)"
         assert r["rows"][0]["ratio"] == 1.0 and all(row["fps"] > 0 for row in r["rows"])

@@ -64,7 +64,7 @@ def bench(cams_file: str, runs, device: str, rounds: int, scales, out_json: str 
         while label in seen:
             label += "'"
         seen.add(label)
-        contenders += contenders_of(label, dec.model)
+        contenders += contenders_of(label, dec.model, model_index=len(seen) - 1)
     bg = blob["background"].to(dev)
     used = resolve_backend(backend, contenders[0].model.xyz)
     results = []
@@ -75,10 +75,12 @@ def bench(cams_file: str, runs, device: str, rounds: int, scales, out_json: str 
         head = (f"{len(cams)} views at {cams[0].width}x{cams[0].height} (scale {k}), "
                 f"{device_name(dev)}, backend {used}, {rounds} rounds")
         print(head)
-        print(f"{'model':58s} {'Gauss/view':>10s} {'FPS':>8s} {'ratio':>6s} {'(min-max)':>13s}")
+        print(f"{'model':58s} {'Gauss/view':>10s} {'FPS':>8s} {'ratio':>6s} {'(min-max)':>13s} "
+              f"{'same form':>9s} {'(min-max)':>13s}")
         for r in rows:
             print(f"{r['label']:58s} {r['gaussians_per_view']:10.0f} {r['fps']:8.1f} "
-                  f"{r['ratio']:6.3f} ({r['ratio_min']:.3f}-{r['ratio_max']:.3f})")
+                  f"{r['ratio']:6.3f} ({r['ratio_min']:.3f}-{r['ratio_max']:.3f}) "
+                  f"{r['ratio_form']:9.3f} ({r['ratio_form_min']:.3f}-{r['ratio_form_max']:.3f})")
         results.append(dict(protocol=head, scale=k, rows=rows))
     if out_json:
         Path(out_json).write_text(json.dumps(results, indent=2))

@@ -374,6 +374,7 @@ def _stage_decoded(spec: RunSpec, scene_path: str, record: dict, lpips_fn,
     dec = decode_model(pgs)                          # on the CPU, then rendered on the run's device
     dev = resolve_device(spec.cfg.train.device)
     dec.model.to(dev)
+    dec.model.bake_if_faster()
     scene = load_scene_for(dec.cfg, scene_path)
     cams = scene.test_cameras or scene.train_cameras
     backend = dec.cfg.train.rasterizer
@@ -390,8 +391,10 @@ def _stage_decoded(spec: RunSpec, scene_path: str, record: dict, lpips_fn,
     prov = feature_cache(dec.model)
     if prov is not None:
         prov.clear_cache()
+        dec.model.unbake()                  # (a bake holds f_c's first-layer terms)
         ev2 = evaluate(dec.model, scene, cams, phase="decoded", backend=backend)
         prov.build_cache(dec.model.xyz)
+        dec.model.bake_if_faster()
         out.update(has_cache=True, fps_nocache=ev2["fps"], psnr_nocache=ev2["psnr"])
     record["decoded"] = out
     _write_record(spec, record)

@@ -8,9 +8,13 @@ renders the same views with each model in turn, several rounds, the order rotate
 model's FPS as the median over rounds and its speed ratio to the first model from the per-round
 pairs (median, min and max).
 
-A model whose feature provider can cache its per-anchor features (Predict-GS's f_c) is timed
-twice: with the cache (how a decoded model renders) and without it (features recomputed every
-view); the cache is built or dropped outside the timed frames.
+Every model is timed in up to three forms (``Contender.form``), set up outside the timed frames:
+``plain`` (:meth:`AnchorModel.decode`; a provider that can cache its per-anchor features, as
+Predict-GS's f_c, with its cache: how a decoded model renders), ``baked``
+(:mod:`baseline.scaffold.baked`: the view-independent part of every decoder head computed once)
+and, for a provider with a cache, ``no cache`` (features recomputed every view). Besides the
+ratio to the first contender, each row has its ratio to the first model in the same form (its
+``plain`` form where it has no such form), so engines compare like with like.
 """
 from __future__ import annotations
 
@@ -33,6 +37,9 @@ class Contender:
     label: str
     model: object
     cache: Optional[bool]        # None: the provider has no cache; True / False: with / without
+    form: str = "plain"          # plain | baked | no cache
+    baked: object = None         # the BakedDecoder rendered with (form baked)
+    model_index: int = 0         # which model (contenders of one model share it)
 
 
 def resolve_model_file(path: str | Path) -> Path:
@@ -46,10 +53,24 @@ def resolve_model_file(path: str | Path) -> Path:
     return p
 
 
-def contenders_of(label: str, model) -> List[Contender]:
-    if feature_cache(model) is not None:
-        return [Contender(label, model, True), Contender(f"{label} (no cache)", model, False)]
-    return [Contender(label, model, None)]
+def contenders_of(label: str, model, *, bake: bool = True, model_index: int = 0
+                  ) -> List[Contender]:
+    """The forms to time of one decoded model (see the module doc): plain, baked (when
+    ``bake`` and the model can be baked), no cache (when its provider has one)."""
+    from baseline.scaffold.baked import BakedDecoder
+
+    cached = feature_cache(model) is not None
+    if cached:
+        _set_cache(model, True)
+    out = [Contender(label, model, True if cached else None, "plain", model_index=model_index)]
+    baked = BakedDecoder.from_model(model) if bake else None
+    if baked is not None:
+        out.append(Contender(f"{label} (baked)", model, out[0].cache, "baked", baked,
+                             model_index))
+    if cached:
+        out.append(Contender(f"{label} (no cache)", model, False, "no cache",
+                             model_index=model_index))
+    return out
 
 
 def _set_cache(model, on: Optional[bool]) -> None:
@@ -61,6 +82,12 @@ def _set_cache(model, on: Optional[bool]) -> None:
         prov.build_cache(model.xyz)
     else:
         prov.clear_cache()
+
+
+def _prepare(c: Contender) -> None:
+    """Put the model in the contender's form (cache, bake), outside the timed frames."""
+    _set_cache(c.model, c.cache)
+    c.model.baked = c.baked
 
 
 @torch.no_grad()
@@ -92,7 +119,9 @@ def run_fps_bench(contenders: Sequence[Contender], cameras, background: torch.Te
         One dict per contender: ``label, gaussians_per_view, fps`` (1 / median over rounds of
         the mean time per view), ``fps_min, fps_max`` (over rounds), ``ratio, ratio_min,
         ratio_max`` (per round: reference time / this time, i.e. > 1 = faster than the
-        reference; median, min, max), ``seconds`` ([rounds] mean time per view).
+        reference; median, min, max), ``form``, ``ratio_form, ratio_form_min, ratio_form_max``
+        and ``ref_form`` (the same against the first model's contender in this form, or in
+        its plain form), ``seconds`` ([rounds] mean time per view).
     """
     if not contenders:
         raise ValueError("fps bench: no model to time")
@@ -105,23 +134,32 @@ def run_fps_bench(contenders: Sequence[Contender], cameras, background: torch.Te
     gaussians = [0.0] * n
     if warmup:      # compile kernels, fill caches, allocate: one untimed view per contender
         for c in contenders:
-            _set_cache(c.model, c.cache)
+            _prepare(c)
             _time_views(c, cameras[:1], background, backend)
     for r in range(rounds):
         for j in range(n):
             i = (j + r) % n
-            _set_cache(contenders[i].model, contenders[i].cache)
+            _prepare(contenders[i])
             times[i][r], gaussians[i] = _time_views(contenders[i], cameras, background, backend)
-    for c in contenders:            # leave models as decoded (cache on)
+    for c in contenders:            # leave models as decoded (cache on, not baked)
         if c.cache is False:
             _set_cache(c.model, True)
+        c.model.baked = None
+    ref_model = contenders[0].model_index
+    ref_of_form = {c.form: i for i, c in reversed(list(enumerate(contenders)))
+                   if c.model_index == ref_model}
     rows = []
     for i, c in enumerate(contenders):
         ratios = [times[0][r] / times[i][r] for r in range(rounds)]
-        rows.append(dict(label=c.label, gaussians_per_view=gaussians[i],
+        f = ref_of_form.get(c.form, ref_of_form.get("plain", 0))
+        same = [times[f][r] / times[i][r] for r in range(rounds)]
+        rows.append(dict(label=c.label, form=c.form, gaussians_per_view=gaussians[i],
                          fps=1.0 / statistics.median(times[i]), fps_min=1.0 / max(times[i]),
                          fps_max=1.0 / min(times[i]), ratio=statistics.median(ratios),
-                         ratio_min=min(ratios), ratio_max=max(ratios), seconds=list(times[i])))
+                         ratio_min=min(ratios), ratio_max=max(ratios),
+                         ratio_form=statistics.median(same), ratio_form_min=min(same),
+                         ratio_form_max=max(same), ref_form=contenders[f].label,
+                         seconds=list(times[i])))
     return rows
 
 
@@ -195,7 +233,8 @@ def _bench_files(paths, scene, rounds, device, max_views) -> dict:
 
     decoded, cams, bg, backend, scene_path0, dev, split = _decode_files(paths, scene, device,
                                                                         max_views)
-    contenders = [c for label, dec in decoded for c in contenders_of(label, dec.model)]
+    contenders = [c for k, (label, dec) in enumerate(decoded)
+                  for c in contenders_of(label, dec.model, model_index=k)]
     rows = run_fps_bench(contenders, cams, bg, rounds=rounds, backend=backend)
     return dict(rows=rows, views=len(cams), split=split,
                 rounds=rounds, threads=torch.get_num_threads(), device=device_name(dev),
@@ -216,7 +255,9 @@ def time_frame_stages(model, cameras, background, *, rounds: int = 3,
     * ``prefilter``: :func:`prefilter_anchors` (closed form) vs its matrix form;
     * ``decode``: :meth:`AnchorModel.decode` (keeps the Gaussians, then activates them) vs
       :func:`decode_all_then_select`;
-    * ``rasterize``: the kept Gaussians through the backend (one form; for the frame's share).
+    * ``rasterize``: the kept Gaussians through the backend (one form; for the frame's share);
+    * ``baked``: :class:`~baseline.scaffold.baked.BakedDecoder` decoding vs ``decode`` (a model
+      that can be baked only; not part of the frame total: the frame as the model renders).
 
     Returns ``{stage: {"new": [rounds] s/view, "ref": [rounds] s/view or None}}``, plus
     ``gaussians`` per view. On every view the two prefilters must choose the same anchors and
@@ -236,8 +277,13 @@ def time_frame_stages(model, cameras, background, *, rounds: int = 3,
         sync()
         return out, time.perf_counter() - t0
 
+    from baseline.scaffold.baked import BakedDecoder
+
     res = {k: {"new": [0.0] * rounds, "ref": [0.0] * rounds} for k in FRAME_STAGES}
     res["rasterize"]["ref"] = None
+    baked = BakedDecoder.from_model(model) if model.fixed_values is not None else None
+    if baked is not None:
+        res["baked"] = {"new": [0.0] * rounds, "ref": [0.0] * rounds}
     n_gauss = 0
     xyz = model.xyz.detach()
     scales = torch.exp(model.per_anchor["scaling"].detach()[:, :3])
@@ -265,6 +311,14 @@ def time_frame_stages(model, cameras, background, *, rounds: int = 3,
                     and torch.allclose(g["new"].means, g["ref"]["means"])):
                 raise AssertionError("bench frame: the two decode forms keep different Gaussians")
             gn = g["new"]
+            if baked is not None:
+                gb, dt = timed(lambda: baked.decode(cam.center, idx))
+                if r >= 0:
+                    res["baked"]["new"][r] += dt / len(cameras)
+                    res["baked"]["ref"][r] = res["decode"]["new"][r]
+                if not (torch.equal(gb.anchor_index, gn.anchor_index)
+                        and torch.allclose(gb.means, gn.means)):
+                    raise AssertionError("bench frame: baked decoding keeps other Gaussians")
             _, dt = timed(lambda: rasterize(gn.means, gn.quats, gn.scales, gn.opacities,
                                             gn.colors, cam, background=background,
                                             backend=backend))
@@ -328,11 +382,20 @@ def format_frame_bench(res: dict) -> str:
                          f"{min(ratios):>5.2f}-{max(ratios):<5.2f}")
         lines.append(f"{'frame':<10}  {1000 * tot_new:>8.1f}  {1000 * tot_ref:>14.1f}  "
                      f"{tot_ref / tot_new:>6.2f}")
+        if "baked" in st:
+            b, d = st["baked"]["new"], st["baked"]["ref"]
+            ratios = [x / y for x, y in zip(d, b)]
+            lines.append(f"{'baked dec':<10}  {1000 * statistics.median(b):>8.1f}  "
+                         f"{1000 * statistics.median(d):>14.1f}  "
+                         f"{statistics.median(ratios):>6.2f}  "
+                         f"{min(ratios):>5.2f}-{max(ratios):<5.2f}  (reference: decode)")
     lines.append("ms/view: median over rounds of the mean over views; reference form: the same "
                  "stage written the way it was before (prefilter with [N,3,3] covariances, "
                  "decode activating all M*K candidates before selecting), run alternately in "
                  "this process and checked equal; x ref = reference time / this time (> 1: "
-                 "faster).")
+                 "faster); baked dec: decoding with the view-independent head terms "
+                 "precomputed (baseline/scaffold/baked.py) against decode, not in the frame "
+                 "total.")
     return "\n".join(lines)
 
 
@@ -343,14 +406,23 @@ def format_fps_bench(res: dict) -> str:
              f"{res['rounds']} rounds (order rotated), {res['threads']} thread(s), "
              f"{res['device']}, backend {res['backend']}",
              f"{'model':<{w}}  {'Gaussians/view':>14}  {'FPS':>7}  {'FPS range':>15}  "
-             f"{'x ref':>6}  {'x ref range':>13}",
-             "-" * (w + 64)]
+             f"{'x ref':>6}  {'x ref range':>13}  {'x same form':>11}  {'range':>13}",
+             "-" * (w + 93)]
     for i, r in enumerate(rows):
         ref = "ref" if i == 0 else f"{r['ratio']:.3f}"
         rng = "" if i == 0 else f"{r['ratio_min']:.3f}-{r['ratio_max']:.3f}"
+        same = r.get("ratio_form")
+        if same is None or r.get("ref_form") == r["label"]:
+            sf, sr = "ref", ""
+        else:
+            sf, sr = f"{same:.3f}", f"{r['ratio_form_min']:.3f}-{r['ratio_form_max']:.3f}"
         lines.append(f"{r['label']:<{w}}  {r['gaussians_per_view']:>14,.0f}  {r['fps']:>7.2f}  "
-                     f"{r['fps_min']:>7.2f}-{r['fps_max']:<7.2f}  {ref:>6}  {rng:>13}")
+                     f"{r['fps_min']:>7.2f}-{r['fps_max']:<7.2f}  {ref:>6}  {rng:>13}  "
+                     f"{sf:>11}  {sr:>13}")
     lines.append("FPS = 1 / median over rounds of the mean time per view (prefilter + Gaussian "
                  "decoding + rasterization); x ref = reference time / this time per round "
-                 "(> 1: faster), median and range over rounds.")
+                 "(> 1: faster), median and range over rounds; x same form: the same against "
+                 "the first model in this row's form (plain: decode as decoded, f_c cache on; "
+                 "baked: view-independent head terms precomputed; no cache: f_c recomputed), "
+                 "or its plain form.")
     return "\n".join(lines)
