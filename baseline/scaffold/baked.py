@@ -183,7 +183,7 @@ class BakedDecoder:
         view = xyz - cam_center.to(xyz)[None, :]
         dist = view.norm(dim=1, keepdim=True).clamp_min(1e-8)
         vd = torch.cat([view / dist, dist], dim=1)                         # [M, 4]
-        hid = torch.relu(torch.addmm(self.P[idx], vd, self.Wv))            # [M, H]
+        hid = self.P[idx].addmm_(vd, self.Wv).relu_()                      # [M, H]
         raw_op = self._second("opacity", hid)                              # [M, K]
         # tanh(x) * mask > 0  <=>  x > 0 and mask on
         sel = ((raw_op > 0) & self.gmask[idx]).reshape(-1)                 # [M*K]
