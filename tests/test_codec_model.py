@@ -276,3 +276,34 @@ def test_quant_cost_refuses_a_run_that_codes_nothing(scene, tmp_path):
     t.train()
     with pytest.raises(ValueError, match="adaptive phase"):
         quantization_cost(t, scene)
+
+
+def test_an_uncoded_anchor_far_outside_moves_nothing(encoded, scene, tmp_path):
+    """End to end: an anchor with every mask off is not coded, so moving it far outside the
+    other anchors' box must change neither the coded positions nor the decoded render (the
+    positions' bounds come from the coded anchors only; taken over all anchors, one stray
+    invalid anchor coarsened every position's 16-bit step)."""
+    import copy
+
+    t = encoded["trainer"]
+    model = copy.deepcopy(t.model)
+    i = int(torch.nonzero(model.anchor_valid())[0, 0])
+    with torch.no_grad():
+        model.per_anchor["mask"][i] = -20.0                      # every Gaussian off: uncoded
+    assert not bool(model.anchor_valid()[i])
+    far = copy.deepcopy(model)
+    with torch.no_grad():
+        xyz = far.per_anchor["xyz"]
+        xyz[i] = xyz.max(dim=0).values + 50.0 * (xyz.max(dim=0).values - xyz.min(dim=0).values)
+    paths = {}
+    for name, m in (("near", model), ("far", far)):
+        paths[name] = tmp_path / f"{name}.pgs"
+        encode_model(t.cfg, m, t.entropy, paths[name], extra_header={"scene": "x"})
+    a, b = decode_model(paths["near"]), decode_model(paths["far"])
+    assert torch.equal(a.model.xyz, b.model.xyz)
+    for k, v in a.model.fixed_values.items():
+        assert torch.equal(v, b.model.fixed_values[k]), k
+    pre = evaluate(far, scene, scene.test_cameras, phase="adaptive", entropy=t.entropy,
+                   backend="cpu", quantized_xyz=quantized_positions(far.xyz, far.anchor_valid()))
+    post = evaluate(b.model, scene, scene.test_cameras, phase="decoded", backend="cpu")
+    assert abs(post["psnr"] - pre["psnr"]) < 0.01
