@@ -321,7 +321,7 @@ def _grid_kernels():
     """The numba grid kernels, sharing the CPU rasterizer's thread settings and launch lock."""
     from baseline.render import cpu as _cpu
 
-    _cpu._configure_numba()
+    _cpu.configure_numba()
     from . import _grid_kernels as K
     return K, _cpu
 

@@ -14,7 +14,7 @@ cached on disk by numba (``cache=True``, in ``__pycache__`` next to the module o
 
 Threading layer: unless the user chose one (``NUMBA_THREADING_LAYER`` or
 ``numba.config.THREADING_LAYER``), numba's ``workqueue`` layer is selected before the first
-parallel launch (training starts numba's default instead: see :func:`_configure_numba`).
+parallel launch (training starts numba's default instead: see :func:`configure_numba`).
 GNU OpenMP (numba's default here) keeps its workers spinning after each kernel; on a busy
 2-core machine that was measured to slow the small PyTorch conversions between the kernels
 ~50x (about 50 ms per 50k-Gaussian forward), and it is not fork-safe (data-loader workers).
@@ -68,7 +68,7 @@ def get_num_threads() -> int:
 def _apply_threads() -> int:
     import numba
 
-    _configure_numba()
+    configure_numba()
     n = get_num_threads()
     numba.set_num_threads(n)
     return n
@@ -89,7 +89,7 @@ def kernels():
     with _K_LOCK:
         if _K is not None:
             return _K
-        _configure_numba()
+        configure_numba()
         from . import _kernels as K
 
         fns = (K.project_fwd, K.project_bwd, K.bin_pairs, K.raster_fwd, K.raster_bwd,
@@ -114,7 +114,7 @@ def kernels():
 _NUMBA_STARTED = False
 
 
-def _configure_numba(layer: str = "workqueue") -> None:
+def configure_numba(layer: str = "workqueue") -> None:
     """Select numba's threading layer (unless the user chose one) and start its thread pool,
     keeping torch's thread count. Only the first call in a process has an effect.
 

@@ -62,9 +62,9 @@ def set_threads(n: int) -> int:
     try:
         import numba
 
-        from baseline.render.cpu import _configure_numba
+        from baseline.render.cpu import configure_numba
 
-        _configure_numba("default")  # first: starting the pool may reset torch's threads
+        configure_numba("default")  # first: starting the pool may reset torch's threads
         numba.set_num_threads(min(n, numba.config.NUMBA_NUM_THREADS))
     except ImportError:  # numba absent
         pass
