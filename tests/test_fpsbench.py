@@ -235,4 +235,10 @@ def test_gpu_fps_tool_exports_cameras_and_times_at_each_scale(files, tmp_path):
                                                       "predict-gs", "predict-gs (baked)",
                                                       "predict-gs (no cache)"]
         assert r["rows"][3]["ref_form"] == "baseline (baked)"
+    # frame: the stages of each file at each scale (pgs bench frame without the scene)
+    st = tool.frame(str(cams_file), [str(files["predict-gs"] / "model.pgs")], "cpu", 1, [1, 2])
+    assert set(st) == {1, 2} and list(st[2]) == ["predict-gs"]
+    for k in (1, 2):
+        s = st[k]["predict-gs"]
+        assert s["gaussians"] > 0 and all(t > 0 for t in s["baked"]["new"] + s["decode"]["new"])
         assert r["rows"][0]["ratio"] == 1.0 and all(row["fps"] > 0 for row in r["rows"])

@@ -9,6 +9,9 @@ machine receives only the repository (64 MiB), not ``../shared/data``. This tool
     # file, rotate the order every round, median over rounds, ratios to the first file)
     python tools/gpu_fps.py bench --cams cams.pt --run A.pgs --run B.pgs --device cuda [--scale 1 --scale 4]
 
+``frame`` is ``pgs bench frame`` there: each file's frame split into prefilter, decoding
+(plain and baked) and rasterization, ms per view at each scale.
+
 ``--scale k`` renders every view at k times its width and height (intrinsics scaled alike): the
 same Gaussians at a higher image resolution, e.g. truck models trained at ``-r 4`` timed at the
 capture's own size. Those frames are not the trained protocol (the Gaussians were fitted to the
@@ -86,6 +89,38 @@ def bench(cams_file: str, runs, device: str, rounds: int, scales, out_json: str 
         Path(out_json).write_text(json.dumps(results, indent=2))
 
 
+def frame(cams_file: str, runs, device: str, rounds: int, scales, backend: str = "auto") -> dict:
+    """``pgs bench frame`` on exported cameras: each file's frame split into its stages
+    (prefilter, decoding, rasterization, and baked decoding), at each scale; printed and
+    returned as {scale: {label: stages}}."""
+    from baseline.codec.model_codec import decode_model
+    from baseline.device import device_name, resolve_device
+    from baseline.eval.fpsbench import (bench_frame_format_model, resolve_model_file,
+                                        time_frame_stages)
+
+    blob = torch.load(cams_file, weights_only=True)
+    cams0 = [Camera(**c) for c in blob["cameras"]]
+    dev = resolve_device(device)
+    bg = blob["background"].to(dev)
+    models = []
+    for p in runs:
+        f = resolve_model_file(p)
+        m = decode_model(f).model.to(dev)
+        models.append((f.parent.name if f.stem == "model" else f.stem, m))
+    out = {}
+    for k in scales:
+        cams = [replace(c, fx=c.fx * k, fy=c.fy * k, cx=c.cx * k, cy=c.cy * k,
+                        width=c.width * k, height=c.height * k) for c in cams0]
+        print(f"{len(cams)} views at {cams[0].width}x{cams[0].height} (scale {k}), "
+              f"{device_name(dev)}, {rounds} rounds")
+        out[k] = {}
+        for label, m in models:
+            st = time_frame_stages(m, cams, bg, rounds=rounds, backend=backend)
+            out[k][label] = st
+            print(bench_frame_format_model(label, st))
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     sub = ap.add_subparsers(dest="cmd", required=True)
@@ -103,9 +138,18 @@ def main() -> None:
     b.add_argument("--backend", default="auto",
                    help="rasterizer (auto: gsplat for CUDA tensors; the files' own setting is "
                         "ignored: the cpu preset pins the numba backend)")
+    f = sub.add_parser("frame", help="split decoded files' frames into stages on exported cameras")
+    f.add_argument("--cams", required=True)
+    f.add_argument("--run", action="append", required=True)
+    f.add_argument("--device", default="auto")
+    f.add_argument("--rounds", type=int, default=5)
+    f.add_argument("--scale", type=int, action="append")
+    f.add_argument("--backend", default="auto")
     a = ap.parse_args()
     if a.cmd == "export":
         export(a.src, a.out)
+    elif a.cmd == "frame":
+        frame(a.cams, a.run, a.device, a.rounds, a.scale or [1], a.backend)
     else:
         bench(a.cams, a.run, a.device, a.rounds, a.scale or [1], a.json, a.backend)
 

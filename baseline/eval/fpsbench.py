@@ -363,32 +363,7 @@ def format_frame_bench(res: dict) -> str:
              f"{res['size']}, {res['rounds']} rounds, {res['threads']} thread(s), "
              f"{res['device']}, backend {res['backend']}"]
     for m in res["models"]:
-        st = m["stages"]
-        lines += ["", f"{m['label']}  ({st['gaussians']:,.0f} Gaussians/view)",
-                  f"{'stage':<10}  {'ms/view':>8}  {'reference form':>14}  {'x ref':>6}  "
-                  f"{'x ref range':>11}", "-" * 57]
-        tot_new = tot_ref = 0.0
-        for k in FRAME_STAGES:
-            new = statistics.median(st[k]["new"])
-            ref = None if st[k]["ref"] is None else statistics.median(st[k]["ref"])
-            tot_new += new
-            tot_ref += new if ref is None else ref
-            if ref is None:
-                lines.append(f"{k:<10}  {1000 * new:>8.1f}  {'-':>14}  {'-':>6}  {'':>11}")
-                continue
-            ratios = [a / b for a, b in zip(st[k]["ref"], st[k]["new"])]
-            lines.append(f"{k:<10}  {1000 * new:>8.1f}  {1000 * ref:>14.1f}  "
-                         f"{statistics.median(ratios):>6.2f}  "
-                         f"{min(ratios):>5.2f}-{max(ratios):<5.2f}")
-        lines.append(f"{'frame':<10}  {1000 * tot_new:>8.1f}  {1000 * tot_ref:>14.1f}  "
-                     f"{tot_ref / tot_new:>6.2f}")
-        if "baked" in st:
-            b, d = st["baked"]["new"], st["baked"]["ref"]
-            ratios = [x / y for x, y in zip(d, b)]
-            lines.append(f"{'baked dec':<10}  {1000 * statistics.median(b):>8.1f}  "
-                         f"{1000 * statistics.median(d):>14.1f}  "
-                         f"{statistics.median(ratios):>6.2f}  "
-                         f"{min(ratios):>5.2f}-{max(ratios):<5.2f}  (reference: decode)")
+        lines += ["", bench_frame_format_model(m["label"], m["stages"])]
     lines.append("ms/view: median over rounds of the mean over views; reference form: the same "
                  "stage written the way it was before (prefilter with [N,3,3] covariances, "
                  "decode activating all M*K candidates before selecting), run alternately in "
@@ -396,6 +371,36 @@ def format_frame_bench(res: dict) -> str:
                  "faster); baked dec: decoding with the view-independent head terms "
                  "precomputed (baseline/scaffold/baked.py) against decode, not in the frame "
                  "total.")
+    return "\n".join(lines)
+
+
+def bench_frame_format_model(label: str, st: dict) -> str:
+    """One model's table of :func:`time_frame_stages` results ``st``."""
+    lines = [f"{label}  ({st['gaussians']:,.0f} Gaussians/view)",
+             f"{'stage':<10}  {'ms/view':>8}  {'reference form':>14}  {'x ref':>6}  "
+             f"{'x ref range':>11}", "-" * 57]
+    tot_new = tot_ref = 0.0
+    for k in FRAME_STAGES:
+        new = statistics.median(st[k]["new"])
+        ref = None if st[k]["ref"] is None else statistics.median(st[k]["ref"])
+        tot_new += new
+        tot_ref += new if ref is None else ref
+        if ref is None:
+            lines.append(f"{k:<10}  {1000 * new:>8.1f}  {'-':>14}  {'-':>6}  {'':>11}")
+            continue
+        ratios = [a / b for a, b in zip(st[k]["ref"], st[k]["new"])]
+        lines.append(f"{k:<10}  {1000 * new:>8.1f}  {1000 * ref:>14.1f}  "
+                     f"{statistics.median(ratios):>6.2f}  "
+                     f"{min(ratios):>5.2f}-{max(ratios):<5.2f}")
+    lines.append(f"{'frame':<10}  {1000 * tot_new:>8.1f}  {1000 * tot_ref:>14.1f}  "
+                 f"{tot_ref / tot_new:>6.2f}")
+    if "baked" in st:
+        b, d = st["baked"]["new"], st["baked"]["ref"]
+        ratios = [x / y for x, y in zip(d, b)]
+        lines.append(f"{'baked dec':<10}  {1000 * statistics.median(b):>8.1f}  "
+                     f"{1000 * statistics.median(d):>14.1f}  "
+                     f"{statistics.median(ratios):>6.2f}  "
+                     f"{min(ratios):>5.2f}-{max(ratios):<5.2f}  (reference: decode)")
     return "\n".join(lines)
 
 
