@@ -22,7 +22,9 @@ logit is within rounding of 0 may be kept by one form and not the other (its opa
 ~1e-7: invisible). Tests compare the two forms on trained models, image and Gaussians.
 
 The bake holds ``(N, H)`` floats for H hidden units in all (baseline 3 x 50 = 150; Predict-GS
-with MGRD + 2 x 64 = 278), built by :meth:`AnchorModel.bake` when a file is decoded.
+with MGRD + 2 x 64 = 278), built by :meth:`AnchorModel.bake`. Decoded models are baked where
+that was measured faster, on CUDA (:meth:`AnchorModel.bake_if_faster`); ``pgs bench fps`` times
+both forms anywhere.
 """
 from __future__ import annotations
 
