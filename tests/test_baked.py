@@ -3,32 +3,19 @@ every decoder and refiner head computed once must give the Gaussians of AnchorMo
 import pytest
 import torch
 
-from baseline.codec.model_codec import decode_model, encode_model
-from baseline.config import build_config
+from baseline.codec.model_codec import decode_model
 from baseline.data.scene import load_scene
-from baseline.data.synthetic import make_scene
 from baseline.eval.evaluate import evaluate
 from baseline.pipeline import render_view, visible_anchors
 from baseline.scaffold.baked import BakedDecoder, BakeHead, _order_heads
-from baseline.train.trainer import Trainer
 
 
 @pytest.fixture(scope="module")
-def decoded(tmp_path_factory):
-    """Decoded baseline and Predict-GS models of one small scene (short trainings)."""
-    d = tmp_path_factory.mktemp("baked")
-    make_scene(d / "scene", n_views=8, width=48, height=36, seed=7)
-    scene = load_scene(d / "scene")
-    torch.set_num_threads(1)
-    out = {"scene": scene}
-    for name, patches in (("baseline", []), ("predict-gs", ["predict-gs"])):
-        cfg = build_config(["demo", *patches], ["train.iterations=150", "train.threads=1",
-                                                "train.log_every=1000"])
-        t = Trainer(cfg, scene, d / name, progress=False)
-        t.train()
-        encode_model(t.cfg, t.model, t.entropy, d / f"{name}.pgs")
-        out[name] = d / f"{name}.pgs"
-    return out
+def decoded(decoded_files):
+    """Decoded baseline and Predict-GS models of one small scene (tests/conftest.py)."""
+    return {"scene": load_scene(decoded_files["scene"]),
+            "baseline": decoded_files["baseline"] / "model.pgs",
+            "predict-gs": decoded_files["predict-gs"] / "model.pgs"}
 
 
 def _randomize(model, seed):
@@ -48,14 +35,22 @@ def _assert_same_gaussians(model, cam, tol=1e-4):
         a = model.decode(cam.center, idx)
         b = model.baked.decode(cam.center, idx)
     assert torch.equal(a.visible, b.visible)
-    # a candidate whose opacity logit is within rounding of 0 may flip: none here
-    assert torch.equal(a.selection, b.selection)
-    assert torch.equal(a.anchor_index, b.anchor_index)
-    assert torch.equal(a.means, b.means)            # offsets x scaling: the same arithmetic
+    # only a candidate whose opacity logit is within rounding of 0 may be kept by one form
+    # and not the other (the module's documented difference)
+    flip = a.selection != b.selection
+    if flip.any():
+        with torch.no_grad():
+            raw_op = model.raw_heads(cam.center, idx)[2].reshape(-1)
+        assert raw_op[flip].abs().max() < 1e-5, raw_op[flip]
+        assert int(flip.sum()) <= max(1, len(a.means) // 1000)
+    both = a.selection & b.selection
+    ka, kb = both[a.selection], both[b.selection]     # the commonly kept, in each one's order
+    assert torch.equal(a.anchor_index[ka], b.anchor_index[kb])
+    assert torch.equal(a.means[ka], b.means[kb])    # offsets x scaling: the same arithmetic
     for k in ("quats", "scales", "opacities", "colors"):
-        assert torch.allclose(getattr(a, k), getattr(b, k), atol=tol, rtol=tol), k
+        assert torch.allclose(getattr(a, k)[ka], getattr(b, k)[kb], atol=tol, rtol=tol), k
     assert b.opacity_all is None
-    return len(a.means)
+    return int(both.sum())
 
 
 @pytest.mark.parametrize("name", ["baseline", "predict-gs"])
@@ -193,6 +188,4 @@ def test_bake_if_faster_bakes_on_cuda_only(decoded):
     m = decode_model(decoded["predict-gs"]).model
     assert m.bake()
     assert m.bake_if_faster() is False and not m.xyz.is_cuda
-    assert m.baked is None
-    m.fixed_values, fixed = None, m.fixed_values
-    assert m.bake_if_faster() is False          # a training model is never baked
+    assert m.baked is None                      # an earlier bake is dropped too

@@ -157,6 +157,10 @@ def test_baked_decoding_on_the_gpu(cuda_run):
             assert m.bake()
         assert m.baked.P.is_cuda and m.baked.gmask.is_cuda
         assert m.bake_if_faster() and m.baked is not None          # on CUDA: baked
+        fixed, m.fixed_values = m.fixed_values, None
+        assert m.bake_if_faster() is False and m.baked is None      # a training model: never
+        m.fixed_values = fixed
+        assert m.bake()
         for cam in scene.test_cameras:
             idx = visible_anchors(m, cam)
             with torch.no_grad():

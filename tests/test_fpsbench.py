@@ -2,44 +2,21 @@
 first. Correctness only (the arithmetic, the order, the contenders, errors); never wall-clock."""
 import math
 import statistics
-import shutil
 
 import pytest
 import torch
 
-from baseline.codec.model_codec import decode_model, encode_model
-from baseline.config import build_config
+from baseline.codec.model_codec import decode_model
 from baseline.data.scene import load_scene
-from baseline.data.synthetic import make_scene
 from baseline.eval import fpsbench
 from baseline.eval.evaluate import evaluate
 from baseline.eval.fpsbench import Contender, bench_files, format_fps_bench, run_fps_bench
-from baseline.train.trainer import Trainer
 
 
 @pytest.fixture(scope="module")
-def files(tmp_path_factory):
-    """A baseline and a Predict-GS file of the same small scene (short training)."""
-    d = tmp_path_factory.mktemp("fpsbench")
-    make_scene(d / "scene", n_views=10, width=48, height=36, seed=5)
-    scene = load_scene(d / "scene")
-    torch.set_num_threads(1)
-    out = {"scene": d / "scene"}
-    for name, patches in (("baseline", []), ("predict-gs", ["predict-gs"])):
-        cfg = build_config(["demo", *patches], ["train.iterations=120", "train.threads=1",
-                                                "train.log_every=1000"])
-        t = Trainer(cfg, scene, d / name, progress=False)
-        t.train()
-        encode_model(t.cfg, t.model, t.entropy, d / name / "model.pgs",
-                     extra_header={"scene": str(d / "scene")})
-        out[name] = d / name
-        if name == "baseline":          # the same model: a file without its scene, one elsewhere
-            encode_model(t.cfg, t.model, t.entropy, d / "noscene.pgs")
-            shutil.copytree(d / "scene", d / "scene-copy")
-            encode_model(t.cfg, t.model, t.entropy, d / "elsewhere.pgs",
-                         extra_header={"scene": str(d / "scene-copy")})
-            out.update(noscene=d / "noscene.pgs", elsewhere=d / "elsewhere.pgs")
-    return out
+def files(decoded_files):
+    """A baseline and a Predict-GS file of one small scene (tests/conftest.py)."""
+    return decoded_files
 
 
 def test_evaluate_breaks_down_gaussians_per_view(files):

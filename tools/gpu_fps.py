@@ -48,32 +48,46 @@ def export(src: str, out: str) -> None:
           f"to {out}")
 
 
-def bench(cams_file: str, runs, device: str, rounds: int, scales, out_json: str | None,
-          backend: str = "auto") -> None:
+def _load(cams_file: str, runs, device: str):
+    """The exported cameras, background and device, and each file decoded once (CPU codec)
+    and moved there, labelled by its name (a run folder's model.pgs: the folder's)."""
     from baseline.codec.model_codec import decode_model
-    from baseline.device import device_name, resolve_device
-    from baseline.eval.fpsbench import contenders_of, resolve_model_file, run_fps_bench
-    from baseline.render import resolve_backend
+    from baseline.device import resolve_device
+    from baseline.eval.fpsbench import resolve_model_file
 
     blob = torch.load(cams_file, weights_only=True)
     cams0 = [Camera(**c) for c in blob["cameras"]]
     dev = resolve_device(device)
-    contenders, seen = [], set()
-    for p in runs:              # decoded once (CPU codec), timed at every scale
+    models, seen = [], set()
+    for p in runs:
         f = resolve_model_file(p)
-        dec = decode_model(f)
-        dec.model.to(dev)
-        label = f.parent.name if f.stem == "model" else f.stem   # a run folder's model.pgs
+        label = f.parent.name if f.stem == "model" else f.stem
         while label in seen:
             label += "'"
         seen.add(label)
-        contenders += contenders_of(label, dec.model, model_index=len(seen) - 1)
-    bg = blob["background"].to(dev)
+        models.append((label, decode_model(f).model.to(dev)))
+    return cams0, blob["background"].to(dev), dev, models
+
+
+def _scaled(cams0, k: int):
+    """The cameras at k times their width and height (intrinsics scaled alike)."""
+    return [replace(c, fx=c.fx * k, fy=c.fy * k, cx=c.cx * k, cy=c.cy * k,
+                    width=c.width * k, height=c.height * k) for c in cams0]
+
+
+def bench(cams_file: str, runs, device: str, rounds: int, scales, out_json: str | None,
+          backend: str = "auto") -> None:
+    from baseline.device import device_name
+    from baseline.eval.fpsbench import contenders_of, run_fps_bench
+    from baseline.render import resolve_backend
+
+    cams0, bg, dev, models = _load(cams_file, runs, device)
+    contenders = [c for i, (label, m) in enumerate(models)
+                  for c in contenders_of(label, m, model_index=i)]
     used = resolve_backend(backend, contenders[0].model.xyz)
     results = []
     for k in scales:
-        cams = [replace(c, fx=c.fx * k, fy=c.fy * k, cx=c.cx * k, cy=c.cy * k,
-                        width=c.width * k, height=c.height * k) for c in cams0]
+        cams = _scaled(cams0, k)
         rows = run_fps_bench(contenders, cams, bg, rounds=rounds, backend=backend)
         head = (f"{len(cams)} views at {cams[0].width}x{cams[0].height} (scale {k}), "
                 f"{device_name(dev)}, backend {used}, {rounds} rounds")
@@ -93,24 +107,13 @@ def frame(cams_file: str, runs, device: str, rounds: int, scales, backend: str =
     """``pgs bench frame`` on exported cameras: each file's frame split into its stages
     (prefilter, decoding, rasterization, and baked decoding), at each scale; printed and
     returned as {scale: {label: stages}}."""
-    from baseline.codec.model_codec import decode_model
-    from baseline.device import device_name, resolve_device
-    from baseline.eval.fpsbench import (bench_frame_format_model, resolve_model_file,
-                                        time_frame_stages)
+    from baseline.device import device_name
+    from baseline.eval.fpsbench import bench_frame_format_model, time_frame_stages
 
-    blob = torch.load(cams_file, weights_only=True)
-    cams0 = [Camera(**c) for c in blob["cameras"]]
-    dev = resolve_device(device)
-    bg = blob["background"].to(dev)
-    models = []
-    for p in runs:
-        f = resolve_model_file(p)
-        m = decode_model(f).model.to(dev)
-        models.append((f.parent.name if f.stem == "model" else f.stem, m))
+    cams0, bg, dev, models = _load(cams_file, runs, device)
     out = {}
     for k in scales:
-        cams = [replace(c, fx=c.fx * k, fy=c.fy * k, cx=c.cx * k, cy=c.cy * k,
-                        width=c.width * k, height=c.height * k) for c in cams0]
+        cams = _scaled(cams0, k)
         print(f"{len(cams)} views at {cams[0].width}x{cams[0].height} (scale {k}), "
               f"{device_name(dev)}, {rounds} rounds")
         out[k] = {}

@@ -53,17 +53,16 @@ def resolve_model_file(path: str | Path) -> Path:
     return p
 
 
-def contenders_of(label: str, model, *, bake: bool = True, model_index: int = 0
-                  ) -> List[Contender]:
-    """The forms to time of one decoded model (see the module doc): plain, baked (when
-    ``bake`` and the model can be baked), no cache (when its provider has one)."""
+def contenders_of(label: str, model, *, model_index: int = 0) -> List[Contender]:
+    """The forms to time of one decoded model (see the module doc): plain, baked (when the
+    model can be baked), no cache (when its provider has one)."""
     from baseline.scaffold.baked import BakedDecoder
 
     cached = feature_cache(model) is not None
     if cached:
         _set_cache(model, True)
     out = [Contender(label, model, True if cached else None, "plain", model_index=model_index)]
-    baked = BakedDecoder.from_model(model) if bake else None
+    baked = BakedDecoder.from_model(model)
     if baked is not None:
         out.append(Contender(f"{label} (baked)", model, out[0].cache, "baked", baked,
                              model_index))
@@ -145,9 +144,10 @@ def run_fps_bench(contenders: Sequence[Contender], cameras, background: torch.Te
         if c.cache is False:
             _set_cache(c.model, True)
         c.model.baked = None
-    ref_model = contenders[0].model_index
-    ref_of_form = {c.form: i for i, c in reversed(list(enumerate(contenders)))
-                   if c.model_index == ref_model}
+    ref_of_form = {}                # form -> the reference model's contender in that form
+    for i, c in enumerate(contenders):
+        if c.model_index == contenders[0].model_index:
+            ref_of_form.setdefault(c.form, i)
     rows = []
     for i, c in enumerate(contenders):
         ratios = [times[0][r] / times[i][r] for r in range(rounds)]
@@ -315,7 +315,6 @@ def time_frame_stages(model, cameras, background, *, rounds: int = 3,
                 gb, dt = timed(lambda: baked.decode(cam.center, idx))
                 if r >= 0:
                     res["baked"]["new"][r] += dt / len(cameras)
-                    res["baked"]["ref"][r] = res["decode"]["new"][r]
                 if not (torch.equal(gb.anchor_index, gn.anchor_index)
                         and torch.allclose(gb.means, gn.means)):
                     raise AssertionError("bench frame: baked decoding keeps other Gaussians")
@@ -325,6 +324,8 @@ def time_frame_stages(model, cameras, background, *, rounds: int = 3,
             if r >= 0:
                 res["rasterize"]["new"][r] += dt / len(cameras)
                 n_gauss += int(gn.means.shape[0])
+    if baked is not None:            # the baked form's reference: plain decoding, same views
+        res["baked"]["ref"] = list(res["decode"]["new"])
     res["gaussians"] = n_gauss / max(1, rounds * len(cameras))
     return res
 

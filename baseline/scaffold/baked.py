@@ -35,6 +35,8 @@ from typing import Callable, Optional
 import torch
 import torch.nn as nn
 
+from baseline.scaffold.model import kept_gaussians
+
 # Pre-activation attributes a head can add to, with their channels per neural Gaussian.
 ATTR_CHANNELS = {"opacity": 1, "cov": 7, "color": 3}
 
@@ -175,10 +177,6 @@ class BakedDecoder:
                visible: Optional[torch.Tensor] = None):
         """Neural Gaussians of anchors ``idx`` [M] seen from ``cam_center`` [3] (a
         :class:`~baseline.scaffold.model.Gaussians`, ``opacity_all`` None)."""
-        import torch.nn.functional as F
-
-        from baseline.scaffold.model import Gaussians
-
         K = self.n_offsets
         M = len(idx)
         xyz = self.xyz[idx]
@@ -191,15 +189,11 @@ class BakedDecoder:
         sel = ((raw_op > 0) & self.gmask[idx]).reshape(-1)                 # [M*K]
         keep = sel.nonzero()[:, 0]                                         # [G]
         row = torch.div(keep, K, rounding_mode="floor")                    # [G]
-        cov = self._second("cov", hid).reshape(M * K, 7)[keep]              # [G, 7]
-        col = self._second("color", hid).reshape(M * K, 3)[keep]            # [G, 3]
         anchor = idx[row]
-        means = xyz[row] + self.offsets_world[anchor * K + keep - row * K]
-        scales = self.scales_base[anchor] * torch.sigmoid(cov[:, :3])
-        if visible is None:
-            visible = torch.zeros(self.P.shape[0], dtype=torch.bool, device=idx.device)
-            visible[idx] = True
-        return Gaussians(means=means, quats=F.normalize(cov[:, 3:7], dim=-1), scales=scales,
-                         opacities=torch.tanh(raw_op.reshape(-1)[keep]),
-                         colors=torch.sigmoid(col), anchor_index=anchor, selection=sel,
-                         opacity_all=None, visible=visible)
+        return kept_gaussians(
+            means=xyz[row] + self.offsets_world[anchor * K + keep - row * K],
+            cov=self._second("cov", hid).reshape(M * K, 7)[keep],
+            raw_color=self._second("color", hid).reshape(M * K, 3)[keep],
+            opacities=torch.tanh(raw_op.reshape(-1)[keep]), scales_base=self.scales_base[anchor],
+            anchor_index=anchor, selection=sel, opacity_all=None, idx=idx,
+            n_anchors=self.P.shape[0], visible=visible)

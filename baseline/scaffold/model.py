@@ -94,6 +94,21 @@ class Gaussians:
     visible: torch.Tensor
 
 
+def kept_gaussians(*, means, cov, raw_color, opacities, scales_base, anchor_index, selection,
+                   opacity_all, idx, n_anchors, visible=None) -> Gaussians:
+    """The activation tail shared by :meth:`AnchorModel.decode` and baked decoding: kept
+    Gaussians' pre-activation cov [G,7] and color [G,3] -> scales (``scales_base`` [G,3] x
+    sigmoid), normalized quaternions, sigmoid colours; ``visible`` [N] built from ``idx`` when
+    not given."""
+    if visible is None:
+        visible = torch.zeros(n_anchors, dtype=torch.bool, device=idx.device)
+        visible[idx] = True
+    return Gaussians(means=means, quats=F.normalize(cov[:, 3:7], dim=-1),
+                     scales=scales_base * torch.sigmoid(cov[:, :3]), opacities=opacities,
+                     colors=torch.sigmoid(raw_color), anchor_index=anchor_index,
+                     selection=selection, opacity_all=opacity_all, visible=visible)
+
+
 class AnchorModel(nn.Module):
     """Anchors + feature provider + decoder (+ optional refiner).
 
@@ -242,17 +257,11 @@ class AnchorModel(nn.Module):
         scaling = values["scaling"][row]                            # [G,6] activated
         offsets = values["offsets"].reshape(M * K, 3)[keep] * scaling[:, :3]
         means = xyz[row] + offsets
-        cov = raw_cov.reshape(M * K, 7)[keep]
-        scales = scaling[:, 3:] * torch.sigmoid(cov[:, :3])
-        quats = F.normalize(cov[:, 3:7], dim=-1)
-        colors = torch.sigmoid(raw_col.reshape(M * K, 3)[keep])
-        if visible is None:
-            visible = torch.zeros(self.n_anchors, dtype=torch.bool, device=idx.device)
-            visible[idx] = True
-        return Gaussians(means=means, quats=quats, scales=scales,
-                         opacities=opacity.reshape(-1)[keep], colors=colors,
-                         anchor_index=idx[row], selection=sel, opacity_all=opacity,
-                         visible=visible)
+        return kept_gaussians(means=means, cov=raw_cov.reshape(M * K, 7)[keep],
+                              raw_color=raw_col.reshape(M * K, 3)[keep],
+                              opacities=opacity.reshape(-1)[keep], scales_base=scaling[:, 3:],
+                              anchor_index=idx[row], selection=sel, opacity_all=opacity,
+                              idx=idx, n_anchors=self.n_anchors, visible=visible)
 
     # ------------------------------------------------------------------- growing / pruning
     def append_anchors(self, new_xyz: torch.Tensor, new_log_scaling: torch.Tensor,

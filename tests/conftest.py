@@ -1,0 +1,38 @@
+"""Fixtures shared by several test modules."""
+import shutil
+
+import pytest
+import torch
+
+from baseline.codec.model_codec import encode_model
+from baseline.config import build_config
+from baseline.data.scene import load_scene
+from baseline.data.synthetic import make_scene
+from baseline.train.trainer import Trainer
+
+
+@pytest.fixture(scope="session")
+def decoded_files(tmp_path_factory):
+    """A baseline and a Predict-GS ``model.pgs`` of the same small scene (short trainings, the
+    demo preset), plus the baseline's model written without its scene and with a copy of it:
+    ``{"scene", "baseline", "predict-gs", "noscene", "elsewhere"}`` (run folders / files)."""
+    d = tmp_path_factory.mktemp("fpsbench")
+    make_scene(d / "scene", n_views=10, width=48, height=36, seed=5)
+    scene = load_scene(d / "scene")
+    torch.set_num_threads(1)
+    out = {"scene": d / "scene"}
+    for name, patches in (("baseline", []), ("predict-gs", ["predict-gs"])):
+        cfg = build_config(["demo", *patches], ["train.iterations=120", "train.threads=1",
+                                                "train.log_every=1000"])
+        t = Trainer(cfg, scene, d / name, progress=False)
+        t.train()
+        encode_model(t.cfg, t.model, t.entropy, d / name / "model.pgs",
+                     extra_header={"scene": str(d / "scene")})
+        out[name] = d / name
+        if name == "baseline":          # the same model: a file without its scene, one elsewhere
+            encode_model(t.cfg, t.model, t.entropy, d / "noscene.pgs")
+            shutil.copytree(d / "scene", d / "scene-copy")
+            encode_model(t.cfg, t.model, t.entropy, d / "elsewhere.pgs",
+                         extra_header={"scene": str(d / "scene-copy")})
+            out.update(noscene=d / "noscene.pgs", elsewhere=d / "elsewhere.pgs")
+    return out
