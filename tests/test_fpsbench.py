@@ -219,3 +219,18 @@ def test_gpu_fps_tool_exports_cameras_and_times_at_each_scale(files, tmp_path):
         s = st[k]["predict-gs"]
         assert s["gaussians"] > 0 and all(t > 0 for t in s["baked"]["new"] + s["decode"]["new"])
         assert r["rows"][0]["ratio"] == 1.0 and all(row["fps"] > 0 for row in r["rows"])
+
+
+def test_bench_labels_tell_same_named_files_apart(tmp_path):
+    """Two runs' model.pgs read as their run folders' names, not `model` and `model'`."""
+    a, b = tmp_path / "hac" / "model.pgs", tmp_path / "pgs" / "model.pgs"
+    deep = tmp_path / "x" / "same" / "model.pgs"
+    run = tmp_path / "runs" / "baseline-l0.004"
+    run.mkdir(parents=True)
+    assert fpsbench.bench_labels([str(a), str(b)]) == ["hac/model", "pgs/model"]
+    assert fpsbench.bench_labels([str(run), str(a)]) == ["baseline-l0.004", "model"]
+    assert fpsbench.bench_labels([str(tmp_path / "same" / "model.pgs"), str(deep)]) == [
+        f"{tmp_path.name}/same/model", "x/same/model"]
+    assert fpsbench.bench_labels([str(a), str(a)]) == ["model", "model'"]
+    assert fpsbench.bench_labels([str(a), str(b), str(a)]) == ["hac/model", "pgs/model",
+                                                               "hac/model'"]

@@ -190,6 +190,31 @@ def bench_files(paths: Sequence[str], *, scene: Optional[str] = None, rounds: in
         cpu_backend.set_num_threads(old_cpu_threads)
 
 
+def bench_labels(paths) -> List[str]:
+    """One label per ``--run`` path: the run folder's name, or the file's stem; where two would
+    read the same (``A/model.pgs`` and ``B/model.pgs``), the parent folders that tell them apart
+    are kept (``A/model``, ``B/model``); a path given twice gets a prime."""
+    parts = []
+    for p in paths:
+        q = Path(p)
+        q = q if q.is_dir() else q.with_suffix("")
+        parts.append([x for x in q.absolute().parts if x not in ("", "/")])
+    labels = []
+    for i, ps in enumerate(parts):
+        k = 1
+        others = [o for j, o in enumerate(parts) if j != i and o != ps]
+        while k < len(ps) and any(o[-k:] == ps[-k:] for o in others):
+            k += 1
+        labels.append("/".join(ps[-k:]))
+    seen, out = set(), []
+    for lab in labels:
+        while lab in seen:
+            lab += "'"
+        seen.add(lab)
+        out.append(lab)
+    return out
+
+
 def _decode_files(paths, scene, device, max_views):
     """Decode each file (or run folder): ``(decoded [(label, DecodedModel)], cameras,
     background, backend, scene path, device)``; all files must render the same views."""
@@ -199,7 +224,7 @@ def _decode_files(paths, scene, device, max_views):
     if not paths:
         raise ValueError("bench: give at least one --run (a .pgs file or a run folder)")
     dev = resolve_device(device)
-    decoded, key0, label_seen = [], None, set()
+    decoded, key0 = [], None
     for p in paths:
         f = resolve_model_file(p)
         dec = decode_model(f)
@@ -212,12 +237,9 @@ def _decode_files(paths, scene, device, max_views):
         elif key != key0:
             raise ValueError(f"bench: models are compared on the same views: {f} renders {key}, "
                              f"the first file {key0}")
-        label = Path(p).name if Path(p).is_dir() else f.stem
-        while label in label_seen:
-            label += "'"
-        label_seen.add(label)
         dec.model.to(dev)
-        decoded.append((label, dec))
+        decoded.append((p, dec))
+    decoded = [(label, dec) for label, (_, dec) in zip(bench_labels(paths), decoded)]
     sc = load_scene_for(cfg0, scene_path0, progress=False)
     cams = list(sc.test_cameras or sc.train_cameras)
     if max_views:
