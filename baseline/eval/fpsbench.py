@@ -238,8 +238,8 @@ def _decode_files(paths, scene, device, max_views):
             raise ValueError(f"bench: models are compared on the same views: {f} renders {key}, "
                              f"the first file {key0}")
         dec.model.to(dev)
-        decoded.append((p, dec))
-    decoded = [(label, dec) for label, (_, dec) in zip(bench_labels(paths), decoded)]
+        decoded.append(dec)
+    decoded = list(zip(bench_labels(paths), decoded))
     sc = load_scene_for(cfg0, scene_path0, progress=False)
     cams = list(sc.test_cameras or sc.train_cameras)
     if max_views:
