@@ -171,9 +171,14 @@ def test_frame_bench_times_each_stage_against_its_reference_form(files, capsys):
         assert st["rasterize"]["ref"] is None
         # baked decoding, timed against decode (its reference) and checked to keep the same
         assert st["baked"]["ref"] == st["decode"]["new"] and all(t > 0 for t in st["baked"]["new"])
+    # the refiner's heads (Predict-GS's MGRD) alone, a share of its decoding; none for HAC
+    assert "refiner" not in res["models"][0]["stages"]
+    st = res["models"][1]["stages"]
+    assert st["refiner"]["ref"] is None
+    assert all(0 < t < d for t, d in zip(st["refiner"]["new"], st["decode"]["new"]))
     text = format_frame_bench(res)
     assert text.count("\nprefilter ") == 2 and text.count("\nframe ") == 2
-    assert text.count("\nbaked dec ") == 2
+    assert text.count("\nbaked dec ") == 2 and text.count("\nrefiner ") == 1
     with pytest.raises(ValueError, match="rounds must be"):
         bench_frame_files([str(files["baseline"])], rounds=0)
     assert main(["bench", "frame", "--run", str(files["predict-gs"]), "--rounds", "1",

@@ -279,7 +279,9 @@ def time_frame_stages(model, cameras, background, *, rounds: int = 3,
       :func:`decode_all_then_select`;
     * ``rasterize``: the kept Gaussians through the backend (one form; for the frame's share);
     * ``baked``: :class:`~baseline.scaffold.baked.BakedDecoder` decoding vs ``decode`` (a model
-      that can be baked only; not part of the frame total: the frame as the model renders).
+      that can be baked only; not part of the frame total: the frame as the model renders);
+    * ``refiner``: the refiner's heads alone (Predict-GS's MGRD: view-dependent, run on every
+      visible anchor), a share of ``decode``; models with an active refiner only.
 
     Returns ``{stage: {"new": [rounds] s/view, "ref": [rounds] s/view or None}}``, plus
     ``gaussians`` per view. On every view the two prefilters must choose the same anchors and
@@ -288,7 +290,7 @@ def time_frame_stages(model, cameras, background, *, rounds: int = 3,
     from baseline.pipeline import visible_anchors
     from baseline.render import rasterize
     from baseline.render.prefilter import prefilter_anchors, prefilter_anchors_matrix_form
-    from baseline.scaffold.model import decode_all_then_select
+    from baseline.scaffold.model import decode_all_then_select, view_inputs
 
     sync = torch.cuda.synchronize if model.xyz.is_cuda else (lambda *a: None)
 
@@ -306,6 +308,9 @@ def time_frame_stages(model, cameras, background, *, rounds: int = 3,
     baked = BakedDecoder.from_model(model) if model.fixed_values is not None else None
     if baked is not None:
         res["baked"] = {"new": [0.0] * rounds, "ref": [0.0] * rounds}
+    refiner = model.refiner is not None and model.refiner.active
+    if refiner:
+        res["refiner"] = {"new": [0.0] * rounds, "ref": None}
     n_gauss = 0
     xyz = model.xyz.detach()
     scales = torch.exp(model.per_anchor["scaling"].detach()[:, :3])
@@ -333,6 +338,12 @@ def time_frame_stages(model, cameras, background, *, rounds: int = 3,
                     and torch.allclose(g["new"].means, g["ref"]["means"])):
                 raise AssertionError("bench frame: the two decode forms keep different Gaussians")
             gn = g["new"]
+            if refiner:          # its heads alone (inside decode): what a refiner adds per view
+                vals = model.coded_values(idx)
+                vd, dist = view_inputs(model.xyz[idx], cam.center)
+                _, dt = timed(lambda: model.refiner(idx, vals, vd, dist))
+                if r >= 0:
+                    res["refiner"]["new"][r] += dt / len(cameras)
             if baked is not None:
                 gb, dt = timed(lambda: baked.decode(cam.center, idx))
                 if r >= 0:
@@ -393,7 +404,7 @@ def format_frame_bench(res: dict) -> str:
                  "this process and checked equal; x ref = reference time / this time (> 1: "
                  "faster); baked dec: decoding with the view-independent head terms "
                  "precomputed (baseline/scaffold/baked.py) against decode, not in the frame "
-                 "total.")
+                 "total; refiner: the refiner's heads alone (Predict-GS's MGRD), part of decode.")
     return "\n".join(lines)
 
 
@@ -424,6 +435,9 @@ def bench_frame_format_model(label: str, st: dict) -> str:
                      f"{1000 * statistics.median(d):>14.1f}  "
                      f"{statistics.median(ratios):>6.2f}  "
                      f"{min(ratios):>5.2f}-{max(ratios):<5.2f}  (reference: decode)")
+    if "refiner" in st:
+        lines.append(f"{'refiner':<10}  {1000 * statistics.median(st['refiner']['new']):>8.1f}  "
+                     f"{'-':>14}  {'-':>6}  {'':>11}  (its heads alone, part of decode)")
     return "\n".join(lines)
 
 

@@ -223,9 +223,7 @@ class AnchorModel(nn.Module):
         if xyz is None:
             xyz = self.per_anchor["xyz"][idx]
         feat = self.provider.decoder_features(idx, values, xyz)
-        view = xyz - cam_center.to(xyz)[None, :]
-        dist = view.norm(dim=1, keepdim=True).clamp_min(1e-8)
-        view_dir = view / dist
+        view_dir, dist = view_inputs(xyz, cam_center)
         raw_op, raw_cov, raw_col = self.decoder(feat, view_dir, dist)
         if self.refiner is not None and self.refiner.active:
             d = self.refiner(idx, values, view_dir, dist)
@@ -288,6 +286,14 @@ class AnchorModel(nn.Module):
         """Keep only anchors where ``keep`` [N] is True (prune the rest)."""
         for name, p in list(self.per_anchor.items()):
             _replace_param(self.per_anchor, name, p.detach()[keep], optimizer, keep=keep)
+
+
+def view_inputs(xyz: torch.Tensor, cam_center: torch.Tensor):
+    """The heads' view inputs of anchors at ``xyz`` [M,3] seen from ``cam_center`` [3]:
+    ``(view_dir [M,3] unit, dist [M,1])``."""
+    view = xyz - cam_center.to(xyz)[None, :]
+    dist = view.norm(dim=1, keepdim=True).clamp_min(1e-8)
+    return view / dist, dist
 
 
 def decode_all_then_select(model: AnchorModel, cam_center: torch.Tensor, idx: torch.Tensor,
