@@ -18,7 +18,9 @@ class Camera:
         viewmat: [4, 4] float32 world-to-camera matrix (OpenCV axes).
         fx, fy, cx, cy: intrinsics in pixels for an image of ``width`` x ``height``.
         width, height: image size in pixels.
-        near: near plane; Gaussians with camera-space z <= near are culled.
+        near: near plane; Gaussians (and, in the prefilter, anchors) with camera-space
+            z <= near are culled. 0.2 as Scaffold-GS's and HAC's prefilter and rasterizer
+            (scenes take it from ``data.near``).
         far: far plane.
         name: image name (for reports and caches).
         index: position of the view in the scene's sorted view list.
@@ -31,7 +33,7 @@ class Camera:
     cy: float
     width: int
     height: int
-    near: float = 0.01
+    near: float = 0.2
     far: float = 1e10
     name: str = ""
     index: int = 0

@@ -35,6 +35,8 @@ class DataConfig:
     eval: bool = True             # hold out every `test_every`-th view for testing
     test_every: int = 8
     background: str = "black"     # "black" or "white"
+    near: float = 0.2             # near plane: anchors and Gaussians at view-space z <= near are
+                                  # culled (Scaffold-GS / HAC: 0.2 in prefilter and rasterizer)
     random_init_points: int = 10000
     random_init_extent: float = 1.3
     cache_dir: str = ""           # "" = beside the scene (or ~/.cache/pgs when read-only)
@@ -145,6 +147,13 @@ class EntropyConfig:
     # estimated with noise). With "noise" the decoder learns to use information below the step
     # that rounding deletes (baseline/hac/quant.py ste_round_q; patch quant-ste).
     decoder_quant: str = "noise"
+    # The rate's denominator V: sum(sampled bits) / (n_sampled * V) and hash bits / (N * V).
+    # 0 = the method's own coded values per anchor, as HAC's code computes it (HAC 86: feat 50 +
+    # scaling 6 + offsets 30; Predict-GS 61: residual 25 + 6 + 30, so one lambda weighs each
+    # Predict-GS bit 86/61 = 1.41x more). N > 0 divides every method by N (86: a bit weighs the
+    # same for both). lambda only moves a method along its own curve: compare methods by
+    # BD-rate, never at equal lambda.
+    rate_values_per_anchor: int = 0
     context_hidden: int = 100
     position_bits: int = 16
     grid: GridConfig = field(default_factory=GridConfig)
@@ -325,6 +334,11 @@ def build_config(patches: list[str] = (), sets: list[str] = ()) -> Config:
 def validate(cfg: Config) -> None:
     if cfg.train.iterations <= 0:
         raise ConfigError("train.iterations must be positive")
+    if not (cfg.data.near > 0 and cfg.data.near < 1e9):
+        raise ConfigError(f"data.near must be a positive finite depth, got {cfg.data.near}")
+    if cfg.entropy.rate_values_per_anchor < 0:
+        raise ConfigError(f"entropy.rate_values_per_anchor must be >= 0 (0: the method's own "
+                          f"coded values per anchor), got {cfg.entropy.rate_values_per_anchor}")
     if cfg.data.background not in ("black", "white"):
         raise ConfigError(f"data.background must be 'black' or 'white', got '{cfg.data.background}'")
     dev = cfg.train.device
@@ -391,6 +405,33 @@ def from_toml(path: str | Path) -> Config:
     return cfg
 
 
+# What one config trains to, as a version. A change of the training code that makes the same
+# config train differently (not float order) bumps it; it is part of every run's config hash, so
+# a run folder or archived record of another version is never reused or mixed as if trained by
+# this code, and every results.json and report names it.
+#   1: up to 2026-11-26.
+#   2: HAC's rate as its reference code trains it: the offsets' bits weighted by the
+#      straight-through float Gaussian mask (the rate trains the masks), the sampled bits x the
+#      share of valid visible anchors (mask_anchor_rate), the context grid normalised by the
+#      widened anchor bounds; near plane 0.2 in prefilter and rasterizer (data.near).
+TRAINING_SEMANTICS = 2
+TRAINING_SEMANTICS_NOTES = {
+    1: "before HAC's mask-training rate (boolean-masked offset bits, no mask_anchor_rate, raw "
+       "context bounds, near 0.01)",
+    2: "HAC's reference rate: straight-through float mask on the offsets' bits, mask_anchor_rate, "
+       "widened context bounds; near 0.2",
+}
+
+
+def semantics_note(version) -> str:
+    """``"2 (what it means)"`` for a report's protocol."""
+    try:
+        v = int(version)
+    except (TypeError, ValueError):
+        return str(version)
+    return f"{v} ({TRAINING_SEMANTICS_NOTES.get(v, 'unknown to this code')})"
+
+
 # Where a run executes, not what it computes: left out of the config hash, so the same settings
 # trained on the CPU or on a GPU are one run (each run records its device and rasterizer backend
 # in results.json, and reports print them in their protocol).
@@ -405,12 +446,18 @@ LATER_KEYS = {("lr", "mask_schedule_scaled"): False,
               ("entropy", "decoder_quant"): "noise",
               ("codec", "positions"): "raw16",
               ("codec", "masks"): "bernoulli",
-              ("codec", "grids"): "all"}
+              ("codec", "grids"): "all",
+              ("data", "near"): 0.2,
+              ("entropy", "rate_values_per_anchor"): 0}
 
 
-def config_hash(cfg: Config) -> str:
-    """A short stable hash of the merged config (used to reuse finished runs)."""
+def config_hash(cfg: Config, semantics: int = TRAINING_SEMANTICS) -> str:
+    """A short stable hash of the merged config and the training-semantics version (used to
+    reuse finished runs). ``semantics=1`` gives the hashes runs of version 1 were stored under
+    (that version was not hashed)."""
     d = to_dict(cfg, drop_meta=True)
+    if semantics != 1:
+        d["training_semantics"] = int(semantics)
     for sec, key in EXECUTION_KEYS:
         d[sec].pop(key, None)
     for (sec, key), default in LATER_KEYS.items():

@@ -29,6 +29,9 @@ class ViewResult:
     camera: Camera
     bits: dict = field(default_factory=dict)      # attribute -> [S] per-anchor bits on the sample
     n_rate_anchors: int = 0
+    # training, adaptive phase: the share of the visible anchors that are valid (any Gaussian
+    # mask on), detached: HAC's ``mask_anchor_rate``, a factor of the sampled rate
+    valid_share: float = 1.0
 
 
 def quantized_positions(xyz: torch.Tensor, coded: torch.Tensor) -> torch.Tensor:
@@ -88,6 +91,7 @@ def render_view(model, cam: Camera, background: torch.Tensor, *, phase: str = "n
     xyz = model.xyz[idx]
     bits: dict = {}
     n_rate = 0
+    valid_share = 1.0
     attrs = {a.name: a for a in model.coded_attributes()}
     if phase == "noise":
         if training and decoder_quant == "ste":
@@ -103,6 +107,7 @@ def render_view(model, cam: Camera, background: torch.Tensor, *, phase: str = "n
         gmask = model.gaussian_mask(idx)
         if training:
             valid = (gmask.detach() > 0).any(dim=1)
+            valid_share = float(valid.float().mean()) if len(idx) else 1.0
             choose = (uniform(len(idx), generator, idx.device) <= rate_sample) & valid
             values, bits = entropy(xyz, values, gmask, training=True, rate_rows=choose,
                                    decoder_quant=decoder_quant)
@@ -117,4 +122,5 @@ def render_view(model, cam: Camera, background: torch.Tensor, *, phase: str = "n
     g = model.decode(cam.center, idx, values, xyz=xyz)
     out = rasterize(g.means, g.quats, g.scales, g.opacities, g.colors, cam,
                     background=background, backend=backend)
-    return ViewResult(render=out, gaussians=g, camera=cam, bits=bits, n_rate_anchors=n_rate)
+    return ViewResult(render=out, gaussians=g, camera=cam, bits=bits, n_rate_anchors=n_rate,
+                      valid_share=valid_share)

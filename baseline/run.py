@@ -12,7 +12,7 @@ from typing import Optional
 
 import torch
 
-from baseline.config import Config, from_toml
+from baseline.config import TRAINING_SEMANTICS, Config, from_toml
 from baseline.fileio import write_text_atomic
 from baseline.train.trainer import CHECKPOINT_NAME, Trainer
 
@@ -26,7 +26,7 @@ def load_scene_for(cfg: Config, scene_path: str, progress: bool = True):
                       cache_dir=cfg.data.cache_dir or None,
                       random_init_points=cfg.data.random_init_points,
                       random_init_extent=cfg.data.random_init_extent, seed=cfg.train.seed,
-                      progress=progress)
+                      near=cfg.data.near, progress=progress)
 
 
 def write_json_atomic(path: Path, data: dict) -> None:
@@ -78,6 +78,7 @@ def train_run(scene_path: str, out: str | Path, cfg: Config, resume: bool = Fals
         "config_patches": cfg.patches,
         "scene": str(Path(scene_path).resolve()),
         "protocol": getattr(scene, "protocol", {}),
+        "training_semantics": TRAINING_SEMANTICS,
         "iterations": trainer.iteration,
         "train_time_s": trainer.train_time,
         "s_per_it": trainer.train_time / max(trainer.iteration, 1),

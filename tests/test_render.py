@@ -35,7 +35,7 @@ def _one_thread():
     cpu_backend.set_num_threads(None)
 
 
-def make_camera(width, height, fov_deg=60.0, viewmat=None, near=0.01, far=1e10):
+def make_camera(width, height, fov_deg=60.0, viewmat=None, near=0.2, far=1e10):
     fx = 0.5 * width / math.tan(math.radians(fov_deg) / 2)
     vm = torch.eye(4) if viewmat is None else viewmat
     return Camera(viewmat=vm, fx=fx, fy=fx, cx=width / 2, cy=height / 2, width=width,

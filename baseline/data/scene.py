@@ -253,7 +253,7 @@ def load_scene(path: str | os.PathLike, resolution: int = -1, images: str | None
                eval: bool = True, test_every: int = 8, background=(0.0, 0.0, 0.0),
                cache_dir: str | os.PathLike | None = None, random_init_points: int = 10000,
                random_init_extent: float = 1.3, seed: int = 0, undistort: str = "crop",
-               prefetch: bool = True, progress: bool = True) -> Scene:
+               prefetch: bool = True, progress: bool = True, near: float = 0.2) -> Scene:
     """Load a COLMAP or Blender / instant-ngp scene.
 
     Args:
@@ -273,6 +273,8 @@ def load_scene(path: str | os.PathLike, resolution: int = -1, images: str | None
             :mod:`baseline.data.undistort`).
         prefetch: build the whole image cache now (with a progress bar); if False each image is
             built on its first :meth:`Scene.image` call.
+        near: every camera's near plane (anchors and Gaussians at view-space z <= near are
+            culled; 0.2 as Scaffold-GS and HAC).
 
     Raises:
         SceneError: unknown layout, missing/unreadable files, unsupported camera model, empty
@@ -330,8 +332,8 @@ def load_scene(path: str | os.PathLike, resolution: int = -1, images: str | None
         recipes[idx] = ViewSource(v.name, v.path, v.source, pinholes[v.source], fsize, size,
                                sub / f"{_safe(v.name)}-{key}.png")
         cam = Camera(viewmat=torch.from_numpy(v.w2c).float(), fx=fx * sx, fy=fy * sy,
-                     cx=cx * sx, cy=cy * sy, width=size[0], height=size[1], name=v.name,
-                     index=idx)
+                     cx=cx * sx, cy=cy * sy, width=size[0], height=size[1], near=float(near),
+                     name=v.name, index=idx)
         (test if t else train).append(cam)
 
     # ---- points
@@ -363,6 +365,7 @@ def load_scene(path: str | os.PathLike, resolution: int = -1, images: str | None
         "eval": bool(eval),
         "test_every": test_every,
         "background": [float(x) for x in bg],
+        "near": float(near),
         "n_train": len(train),
         "n_test": len(test),
         "points": points_desc,

@@ -476,6 +476,9 @@ def make_row(spec: RunSpec, res: dict, record: dict) -> dict:
         "pre_encode": {k: res["test"].get(k) for k in ("psnr", "ssim", "fps")},
         "protocol": res.get("protocol", {}),
         "train_versions": res.get("versions", {}),
+        # records written before the version was kept were trained with version 1
+        "training_semantics": res.get("training_semantics", 1),
+        "rate_values_per_anchor": spec.cfg.entropy.rate_values_per_anchor,
         "records_only": records_only(spec),
     }
 

@@ -446,6 +446,7 @@ def protocol_lines(results: dict) -> list[tuple[str, str]]:
         ("--set", ", ".join(results.get("sets", [])) or "(none)"),
         ("codec", _codec_line(results, runs)),
         ("rate term", _rate_term_line(results, runs)),
+        ("training semantics", _semantics_line(runs)),
         ("iterations", per_method("iterations")),
         ("threads", per_method("threads")),
         ("device", per_method("device")),
@@ -468,6 +469,18 @@ def protocol_lines(results: dict) -> list[tuple[str, str]]:
     return items
 
 
+def _semantics_line(runs: list) -> str:
+    """The training-semantics version of the runs (baseline.config.TRAINING_SEMANTICS): the
+    version is part of each run's config hash, so one comparison holds one version."""
+    from baseline.config import semantics_note
+
+    vs = sorted({int(r.get("training_semantics", 1)) for r in runs}) or ["-"]
+    if len(vs) > 1:
+        return ("MIXED: " + ", ".join(semantics_note(v) for v in vs)
+                + " (runs of different versions are not comparable)")
+    return semantics_note(vs[0])
+
+
 def _codec_line(results: dict, runs: list) -> str:
     """How the files were coded: HAC's layout, or the --codec patch's settings (encode only)."""
     c = results.get("codec")
@@ -481,6 +494,9 @@ def _codec_line(results: dict, runs: list) -> str:
 def rate_elements(row: dict) -> Optional[int]:
     """Coded values per anchor of a run (the sum of its coded attributes' dims; offsets count
     all K x 3 whatever the masks), read from its record; None for records kept without them."""
+    fixed = int(row.get("rate_values_per_anchor") or 0)
+    if fixed > 0:       # entropy.rate_values_per_anchor set: every method divides by it
+        return fixed
     attrs = row.get("attributes")
     return sum(int(a["dims"]) for a in attrs) if attrs else None
 
@@ -494,8 +510,8 @@ def _rate_term_line(results: dict, runs: list) -> str:
         e = rate_elements(r)
         if e is not None:
             per_method.setdefault(r["method"], e)
-    line = ("lambda x bits / (sampled anchors x E), E = coded values per anchor (HAC's bits per "
-            "parameter)")
+    line = ("lambda x (bits / (sampled anchors x E) x valid share + hash bits / (anchors x E)), "
+            "E = coded values per anchor (HAC's bits per parameter; entropy.rate_values_per_anchor)")
     if not per_method:
         return line + " (E not in these records)"
     line += ": " + ", ".join(f"{m} {e}" for m, e in per_method.items())

@@ -19,7 +19,9 @@ Interface (``EntropyModel(attrs: Sequence[CodedAttribute], n_masks: int, **optio
     forward(xyz, values {name: [N,d]}, gauss_mask [N,K] or None, training=True, adaptive_q=True)
         -> (values_hat {name: [N,d]}, bits {name: [N]} per-anchor bits, masked values excluded)
         training: x + U(-.5,.5) Q; else straight-through rounding (clamped to mean +- 15000 Q).
-        bits = -log2 max(|Phi((x+Q/2-mu)/s) - Phi((x-Q/2-mu)/s)|, 1e-6).
+        bits = -log2 max(|Phi((x+Q/2-mu)/s) - Phi((x-Q/2-mu)/s)|, 1e-6); in training a
+        masked attribute's bits are weighted by the float gauss_mask (its straight-through
+        gradient reaches the mask logits, as in HAC), otherwise by the boolean mask.
     hash_bits() -> scalar tensor (0 for factorized)
     quantize_for_coding(xyz, values, gauss_mask) -> {name: [N,d] float32}  what decode returns
     compress(xyz, values, gauss_mask, return_values=False) -> {name: bytes} (, values)
@@ -156,6 +158,29 @@ class EntropyModel(nn.Module):
         return (m > 0.5).repeat_interleave(per, dim=1) if m.is_floating_point() else \
             m.bool().repeat_interleave(per, dim=1)
 
+    def value_weights(self, attr: CodedAttribute, gauss_mask: Optional[torch.Tensor],
+                      n: int) -> Optional[torch.Tensor]:
+        """[n, d] float weights of the values' bits in the training rate (None: all 1).
+
+        HAC (``generate_neural_gaussians``) multiplies the offsets' bits by the Gaussian mask as
+        the straight-through float it is in training (forward 0/1, backward the sigmoid's
+        gradient), so the offsets' rate pushes every sampled Gaussian's mask logit toward "off"
+        in proportion to its offsets' bits. A float ``gauss_mask`` is used as it is (its
+        gradient kept); a boolean one gives 0/1 weights. The codec uses :meth:`value_mask`.
+        """
+        if not attr.masked or gauss_mask is None:
+            return None
+        m = gauss_mask
+        if not torch.is_tensor(m):
+            m = torch.as_tensor(m)
+        if m.ndim == 3 and m.shape[-1] == 1:
+            m = m[..., 0]
+        if m.shape != (n, self.n_masks):
+            raise ValueError(f"gauss_mask must be [{n}, {self.n_masks}], got {tuple(m.shape)}")
+        if not m.is_floating_point():
+            m = m.float()
+        return m.repeat_interleave(attr.dims // self.n_masks, dim=1)
+
     def _check_values(self, values, n):
         for a in self.attrs:
             if a.name not in values:
@@ -199,7 +224,10 @@ class EntropyModel(nn.Module):
             if not adaptive_q:
                 q = torch.full_like(q, a.q0)
             x_hat = noise_quantize(x, q) if training else ste_round(x, q, q0=a.q0)
-            m = self.value_mask(a, gauss_mask, n, device=x.device)
+            # training: the float straight-through mask weighs the bits (its gradient trains
+            # the masks, as HAC's rate does); evaluation: the codec's boolean mask
+            m = (self.value_weights(a, gauss_mask, n) if training
+                 else self.value_mask(a, gauss_mask, n, device=x.device))
             if rate_rows is not None:
                 b = gaussian_bits(x_hat[rate_rows], mean, scale, q[rate_rows])
                 m = m[rate_rows] if m is not None else None

@@ -3,7 +3,8 @@
 Each anchor is projected as a Gaussian with identity rotation and the given scales (the
 first three of exp(scaling)). An anchor is visible when
 
-* its camera-space z is > 0.2 (a fixed threshold, as Scaffold-GS; independent of camera.near),
+* its camera-space z is > ``camera.near`` (0.2 by default, ``data.near``: Scaffold-GS and HAC
+  cull anchors and Gaussians at the same depth),
 * its EWA 2D covariance, *after* the 0.3 px^2 diagonal dilation, has det > 0 (always true for
   finite inputs: the dilation makes it positive definite; what this rejects in practice is
   non-finite values), and
@@ -22,18 +23,18 @@ from torch import Tensor
 
 from .conventions import CLIP_MARGIN, EPS2D
 
-Z_MIN = 0.2
+Z_MIN = 0.2  # the default near plane (baseline.camera.Camera.near)
 
 
 @torch.no_grad()
-def prefilter_anchors(xyz: Tensor, scales: Tensor, camera, z_min: float = Z_MIN) -> Tensor:
+def prefilter_anchors(xyz: Tensor, scales: Tensor, camera, z_min: float | None = None) -> Tensor:
     """Which anchors can touch the image.
 
     Args:
         xyz: [N, 3] anchor positions (world).
         scales: [N, 3] positive scales (activated) of the anchor-sized Gaussian.
         camera: :class:`baseline.camera.Camera`.
-        z_min: camera-space depth threshold (0.2).
+        z_min: camera-space depth threshold; None: ``camera.near`` (0.2 by default).
     Returns:
         [N] bool visibility mask, on xyz's device.
     """
@@ -46,7 +47,7 @@ def prefilter_anchors(xyz: Tensor, scales: Tensor, camera, z_min: float = Z_MIN)
     R, t = vm[:3, :3], vm[:3, 3]
     p = x @ R.T + t
     z = p[:, 2]
-    z_ok = z > z_min
+    z_ok = z > (float(camera.near) if z_min is None else z_min)
     p_safe = torch.where(z_ok[:, None], p, torch.ones_like(p))
     # Written out element by element rather than as [N,3,3] / [N,2,3] batched products (which
     # torch runs as N tiny matrix products: ~40 ms for 165k anchors on one core, most of a
@@ -81,7 +82,8 @@ def prefilter_anchors(xyz: Tensor, scales: Tensor, camera, z_min: float = Z_MIN)
 
 
 @torch.no_grad()
-def prefilter_anchors_matrix_form(xyz: Tensor, scales: Tensor, camera, z_min: float = Z_MIN) -> Tensor:
+def prefilter_anchors_matrix_form(xyz: Tensor, scales: Tensor, camera,
+                                  z_min: float | None = None) -> Tensor:
     """Reference form of :func:`prefilter_anchors`: the same test written with [N,3,3]
     camera-space covariances and the rasterizer's shared :func:`ewa_cov2d` (batched 2x3 / 3x3
     products). Tests check that the two decide alike; ``pgs bench frame`` times both."""
@@ -91,7 +93,7 @@ def prefilter_anchors_matrix_form(xyz: Tensor, scales: Tensor, camera, z_min: fl
     vm = camera.viewmat.to(xyz.device, dt)
     R, t = vm[:3, :3], vm[:3, 3]
     p = xyz.to(dt) @ R.T + t
-    z_ok = p[:, 2] > z_min
+    z_ok = p[:, 2] > (float(camera.near) if z_min is None else z_min)
     p_safe = torch.where(z_ok[:, None], p, torch.ones_like(p))
     cov_cam = (R[None] * (scales.to(dt) ** 2)[:, None, :]) @ R.T
     cov2d = ewa_cov2d(p_safe, cov_cam, camera)

@@ -66,3 +66,32 @@ def lr_exp(step: int, total: int, lr0: float, lr1: float) -> float:
 
     t = min(max(step / max(total, 1), 0.0), 1.0)
     return math.exp((1 - t) * math.log(lr0) + t * math.log(lr1))
+
+
+def rate_term(bits: dict, n_sampled: int, valid_share: float, hash_bits, n_anchors: int,
+              values_per_anchor: int):
+    """HAC's rate term (``train.py`` / ``generate_neural_gaussians``), multiplied by lambda by
+    the caller: ``sum(sampled bits) / (n_sampled * V) * valid_share + hash_bits / (N * V)``.
+
+    Args:
+        bits: attribute -> [S] per-anchor bits of the S sampled anchors (masked offsets already
+            weighted by the straight-through mask, so their entries stay in the denominator).
+        n_sampled: S (0: no sampled term).
+        valid_share: detached share of valid anchors among the visible ones (HAC's
+            ``mask_anchor_rate``).
+        hash_bits: scalar tensor (context grid, plus a provider's grid) or None.
+        n_anchors: N, all anchors.
+        values_per_anchor: V, the coded values per anchor the bits are normalised by (HAC: feat
+            50 + scaling 6 + offsets 30 = 86).
+    Returns:
+        ``(rate, sampled_bits_per_value)``: the term (tensor, or 0.0 when empty) and the sampled
+        part before the ``valid_share`` factor (a float for the log; None without a sample).
+    """
+    rate, bpv = 0.0, None
+    if n_sampled > 0:
+        per_value = sum(b.sum() for b in bits.values()) / (n_sampled * values_per_anchor)
+        bpv = float(per_value.detach())
+        rate = per_value * valid_share
+    if torch.is_tensor(hash_bits):
+        rate = rate + hash_bits / (max(n_anchors, 1) * values_per_anchor)
+    return rate, bpv

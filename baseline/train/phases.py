@@ -3,10 +3,19 @@
 it <= noise_from: no quantization; noise_from < it <= context_from: U(-0.5,0.5) * Q0 noise;
 at context_from the anchor bounds are recomputed; after it the context model is on (adaptive
 steps, rate and mask losses). Milestones scale with ``train.iterations`` like every other.
+
+The context grid's normalisation box is HAC's ``update_anchor_bound``: the anchors' per-axis
+min/max widened outward (x1.2 away from 0, x0.8 toward it; the same widening as the codec's
+16-bit positions), taken at the start of iteration ``context_from``, before that iteration's
+growing, as HAC does at step 10000. Anchors grown later (until ``update_until``) then still fall
+inside the box and read context features (outside it the grid reads zeros).
 """
 from __future__ import annotations
 
+import torch
+
 from baseline import registry
+from baseline.codec.rangecoder import anchor_bounds
 
 
 def phase_at(it: int, noise_from: int, context_from: int) -> str:
@@ -28,11 +37,13 @@ class HACPhases:
 
     def before_step(self, it: int) -> None:
         ph = phase_at(it, self.noise_from, self.context_from)
-        if ph == "adaptive" and self.t.phase != "adaptive":
+        # HAC's moment (step 10000, before its growing), or the first step when the context is
+        # on from the start (context_from 0)
+        if it == max(self.context_from, 1):
             ent = self.t.entropy
             if hasattr(ent, "set_bounds"):     # context models normalise by the anchor box
-                xyz = self.t.model.xyz.detach()
-                ent.set_bounds(xyz.min(0).values, xyz.max(0).values)
+                lo, hi = anchor_bounds(self.t.model.xyz.detach().cpu().numpy())
+                ent.set_bounds(torch.from_numpy(lo), torch.from_numpy(hi))
         self.t.phase = ph
 
 

@@ -27,7 +27,7 @@ from baseline.device import make_generator, resolve_device
 from baseline.fileio import atomic_path, write_text_atomic
 from baseline.pipeline import render_view
 from baseline.scaffold.build import build_entropy, build_model, entropy_param_groups
-from baseline.train.losses import lr_exp, reconstruction_loss
+from baseline.train.losses import lr_exp, rate_term, reconstruction_loss
 
 CHECKPOINT_NAME = "checkpoint.pt"
 TRAIN_LOG_NAME = "train_log.jsonl"
@@ -162,6 +162,13 @@ class Trainer:
             g["lr"] = g["lr_init"]
         return [g for g in groups if g["params"]]
 
+    @property
+    def rate_values_per_anchor(self) -> int:
+        """The rate's per-value denominator (``entropy.rate_values_per_anchor``; 0: the method's
+        own coded values per anchor, as HAC's code computes it: HAC 86, Predict-GS 61)."""
+        v = self.cfg.entropy.rate_values_per_anchor
+        return v if v > 0 else sum(a.dims for a in self.model.coded_attributes())
+
     def update_lr(self, it: int) -> None:
         total = self.cfg.train.iterations
         for g in self.optimizer.param_groups:
@@ -204,17 +211,14 @@ class Trainer:
         if g.scales.shape[0] > 0 and cfg.train.lambda_volume > 0:
             loss = loss + cfg.train.lambda_volume * g.scales.prod(dim=1).mean()
         if self.phase == "adaptive":
-            dims = sum(a.dims for a in self.model.coded_attributes())
-            rate = 0.0
-            if res.n_rate_anchors > 0:
-                bits = sum(b.sum() for b in res.bits.values())
-                rate = bits / (res.n_rate_anchors * dims)
-                terms["bpp"] = float(rate.detach())
             hb = self.entropy.hash_bits()
             if hasattr(self.model.provider, "rate_bits"):   # e.g. Predict-GS's SFP grid
                 hb = hb + self.model.provider.rate_bits()
-            if torch.is_tensor(hb):
-                rate = rate + hb / (self.model.n_anchors * dims)
+            rate, bpv = rate_term(res.bits, res.n_rate_anchors, res.valid_share, hb,
+                                  self.model.n_anchors, self.rate_values_per_anchor)
+            if bpv is not None:
+                terms["bpp"] = bpv
+                terms["valid_share"] = res.valid_share
             loss = loss + cfg.entropy.lmbda * rate
             loss = loss + cfg.entropy.mask_lambda * torch.sigmoid(self.model.per_anchor["mask"]).mean()
         ctx = {"render": out, "gaussians": g, "camera": cam, "gt": gt, "result": res}
