@@ -264,7 +264,7 @@ def cmd_compare(args) -> int:
                               lpips_weights=args.lpips_weights, progress=not args.no_progress,
                               plots=not args.no_plots, only=args.only, remeasure=args.remeasure,
                               report_only=args.report_only, reference=args.reference,
-                              codec=args.codec)
+                              codec=args.codec, seeds=args.seeds)
     except KeyboardInterrupt:
         print(f"\ninterrupted: finished stages are kept in {args.out}; run the same command "
               f"again to resume", file=sys.stderr)
@@ -408,6 +408,10 @@ def main(argv=None) -> int:
     p.add_argument("--lambda", dest="lambdas", type=float, nargs="+", action="extend",
                    default=None, metavar="L", help="rate points (entropy.lmbda); default: the "
                    "config's own; >= 3 give BD-rate / BD-PSNR")
+    p.add_argument("--seeds", type=int, nargs="+", default=None, metavar="S",
+                   help="train every rate point once per seed (train.seed): the report gives "
+                        "each point's seed mean and spread and BD-rate per seed and on the "
+                        "seed-mean curves (two seeds or more for any rate-distortion claim)")
     p.add_argument("--out", default="runs/compare", help="comparison folder (runs/, report.md, "
                    "results.json, plots); rerun to resume")
     p.add_argument("--lpips-weights", default=None, help="LPIPS weights file (else unavailable)")

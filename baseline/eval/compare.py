@@ -68,10 +68,12 @@ class RunSpec:
     cfg: Config
     hash: str
     dir: Path
+    seed: Optional[int] = None      # train.seed when the comparison was asked for seeds
 
     @property
     def label(self) -> str:
-        return f"{self.method.name} lambda={self.lmbda:g}"
+        return f"{self.method.name} lambda={self.lmbda:g}" + (
+            f" seed={self.seed}" if self.seed is not None else "")
 
 
 def _method_of(flag: str, value: str) -> Method:
@@ -101,25 +103,37 @@ def _safe(name: str) -> str:
 
 
 def plan_runs(out: str | Path, methods: list[Method], lambdas: Optional[list[float]],
-              common_patches: list[str] = (), sets: list[str] = ()) -> list[RunSpec]:
+              common_patches: list[str] = (), sets: list[str] = (),
+              seeds: Optional[list[int]] = None) -> list[RunSpec]:
     """Build every run's config up front (bad patches / keys fail before any training).
 
     With ``lambdas`` None each method runs once at its config's own ``entropy.lmbda``.
+    ``seeds``: each rate point is trained once per ``train.seed`` (folders
+    ``<method>-l<lambda>-s<seed>-<hash>``), in the order method, seed, lambda, so that one seed's
+    whole curve finishes before the next seed starts.
     """
     out = Path(out)
+    if seeds is not None:
+        seeds = [int(x) for x in seeds]
+        if not seeds or len(set(seeds)) != len(seeds) or min(seeds) < 0:
+            raise ValueError(f"--seeds must list distinct non-negative integers, got {seeds}")
     specs = []
     for m in methods:
         patches = list(common_patches) + list(m.patches)
-        if lambdas:
-            cfgs = [(float(lm), build_config(patches, list(sets) + [f"entropy.lmbda={float(lm)!r}"]))
-                    for lm in lambdas]
-        else:
-            cfg = build_config(patches, list(sets))
-            cfgs = [(float(cfg.entropy.lmbda), cfg)]
-        for lm, cfg in cfgs:
-            h = config_hash(cfg)
-            d = out / "runs" / f"{_safe(m.name)}-l{lm:g}-{h}"
-            specs.append(RunSpec(m, lm, cfg, h, d))
+        for seed in (seeds if seeds is not None else [None]):
+            extra = [] if seed is None else [f"train.seed={seed}"]
+            if lambdas:
+                cfgs = [(float(lm), build_config(patches, list(sets) + extra
+                                                 + [f"entropy.lmbda={float(lm)!r}"]))
+                        for lm in lambdas]
+            else:
+                cfg = build_config(patches, list(sets) + extra)
+                cfgs = [(float(cfg.entropy.lmbda), cfg)]
+            for lm, cfg in cfgs:
+                h = config_hash(cfg)
+                tag = "" if seed is None else f"-s{seed}"
+                d = out / "runs" / f"{_safe(m.name)}-l{lm:g}{tag}-{h}"
+                specs.append(RunSpec(m, lm, cfg, h, d, seed))
     return specs
 
 
@@ -452,6 +466,8 @@ def make_row(spec: RunSpec, res: dict, record: dict) -> dict:
         "method_patches": list(spec.method.patches),
         "patches": list(spec.cfg.patches),
         "lmbda": spec.lmbda,
+        "seed": spec.seed,
+        "train_seed": spec.cfg.train.seed,
         "run_dir": str(spec.dir),
         "config_hash": spec.hash,
         "psnr": dec["psnr"], "ssim": dec["ssim"], "lpips": dec["lpips"],
@@ -543,7 +559,7 @@ def run_compare(scene: str | Path, out: str | Path, vs: list[str] = (),
                 progress: bool = True, plots: bool = True, echo: bool = True,
                 only: Optional[list[str]] = None, remeasure: bool = False,
                 report_only: bool = False, reference: Optional[str] = None,
-                codec: Optional[str] = None) -> dict:
+                codec: Optional[str] = None, seeds: Optional[list[int]] = None) -> dict:
     """Run (or resume) a comparison; write ``out/results.json``, ``out/report.md`` and plots.
 
     ``only``: bring only the runs of these methods (names as in the report: ``baseline``, a
@@ -561,6 +577,8 @@ def run_compare(scene: str | Path, out: str | Path, vs: list[str] = (),
     every run's size ratio and PSNR change against it.
     ``codec``: a patch of ``[codec]`` settings applied when encoding every run (training and run
     folders unchanged); e.g. ``"compact-codec"``.
+    ``seeds``: train every rate point once per seed (``train.seed``); the report then gives each
+    point's seed mean and spread, and BD-rate per seed and on the seed-mean curves.
     """
     from baseline.eval.metrics import load_lpips
     from baseline.eval.report import format_report, write_report
@@ -576,7 +594,7 @@ def run_compare(scene: str | Path, out: str | Path, vs: list[str] = (),
     if lambdas is not None and len(set(lambdas)) != len(lambdas):
         raise ValueError(f"--lambda lists a value twice: {lambdas}")
     codec_over = codec_overrides(codec)
-    specs = plan_runs(out, methods, lambdas, list(common_patches), list(sets))
+    specs = plan_runs(out, methods, lambdas, list(common_patches), list(sets), seeds)
     ref_method = parse_reference(reference)
     ref_spec = (plan_reference(out, ref_method, list(common_patches), list(sets))
                 if ref_method is not None else None)
@@ -600,6 +618,7 @@ def run_compare(scene: str | Path, out: str | Path, vs: list[str] = (),
         "common_patches": list(common_patches),
         "sets": list(sets),
         "lambdas": None if lambdas is None else [float(x) for x in lambdas],
+        "seeds": None if seeds is None else [int(x) for x in seeds],
         "codec": {"patch": codec, "settings": codec_over} if codec else None,
         "lpips": f"measured with {lp_id}" if lpips_fn is not None else lpips_reason,
         "only": list(only) if only else None,
@@ -614,7 +633,10 @@ def run_compare(scene: str | Path, out: str | Path, vs: list[str] = (),
     finished = [is_finished(s, lp_id, codec_over) for s in specs]   # reads each run's records once
     n_done = 0 if remeasure else sum(finished)
     if echo and methods:
-        print(f"compare: {len(methods)} method(s) x {len(specs) // len(methods)} rate point(s) = "
+        per = len(specs) // len(methods)
+        what = (f"{per // len(seeds)} rate point(s) x {len(seeds)} seed(s)" if seeds
+                else f"{per} rate point(s)")
+        print(f"compare: {len(methods)} method(s) x {what} = "
               f"{len(specs)} run(s) on {scene_path}; {n_done} already finished in {out / 'runs'}")
     elif echo:
         print(f"compare: the uncompressed reference only, on {scene_path}")
