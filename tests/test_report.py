@@ -249,3 +249,70 @@ def test_rate_term_line_says_what_one_lambda_weighs_per_method():
     assert ": baseline 80, predict-gs 55;" in line
     assert "against baseline's: predict-gs 1.45x" in line and "entropy-factorized" not in line
     assert "rate term" in format_report(res) and "predict-gs 1.45x" in format_report(res)
+
+
+def seeded_results():
+    """Two seeds per point. Seed 0: the contender is 0.8x the baseline's bytes at equal PSNR;
+    seed 1: both curves 0.1 dB lower, the contender 0.9x. The seed-mean curves are then built
+    from per-lambda means of size and PSNR."""
+    res = stored_results()
+    runs = []
+    for r in res["runs"]:
+        if r["method"] == "entropy-factorized":
+            continue
+        for seed, dp, scale in ((0, 0.0, 1.0), (1, -0.1, 1.125 if r["method"] != "baseline" else 1.0)):
+            q = dict(r, seed=seed, psnr=r["psnr"] + dp, bytes=int(r["bytes"] * scale),
+                     groups=dict(r["groups"]))
+            q["mb"] = q["bytes"] / MB
+            runs.append(q)
+    res["runs"] = runs
+    res["methods"] = res["methods"][:2]
+    res["seeds"] = [0, 1]
+    return res
+
+
+def test_seeded_report_gives_bd_per_seed_and_on_the_seed_mean_curves(tmp_path):
+    from baseline.eval.bdrate import bd_rate
+    from baseline.eval.report import seed_mean_points
+
+    res = seeded_results()
+    bd = {b["seed"]: b for b in compute_bd(res)}
+    assert set(bd) == {0, 1, "mean"}
+    assert bd[0]["bd_rate"] == pytest.approx(-20.0, abs=1e-4)
+    assert bd[1]["bd_rate"] == pytest.approx(-10.0, abs=1e-4)
+    base = seed_mean_points(res, "baseline")
+    pgs = seed_mean_points(res, "predict-gs")
+    assert [p["lmbda"] for p in base] == LAMBDAS and all(p["n"] == 2 for p in base)
+    # the mean curve from the hand means of the runs
+    def hand(method):
+        pts = []
+        for lm in LAMBDAS:
+            rs = [r for r in res["runs"] if r["method"] == method and r["lmbda"] == lm]
+            pts.append((sum(r["mb"] for r in rs) / 2, sum(r["psnr"] for r in rs) / 2))
+        return pts
+    hb, hp = hand("baseline"), hand("predict-gs")
+    assert [p["psnr"] for p in pgs] == pytest.approx([y for _, y in hp])
+    assert bd["mean"]["bd_rate"] == pytest.approx(
+        bd_rate([x for x, _ in hb], [y for _, y in hb], [x for x, _ in hp], [y for _, y in hp]))
+    assert base[0]["psnr_max"] - base[0]["psnr_min"] == pytest.approx(0.1)
+    # a row is paired with the baseline run of its own seed
+    row = next(r for r in res["runs"] if r["method"] == "predict-gs" and r["seed"] == 1)
+    assert baseline_partner(res, row)["seed"] == 1
+    # one section table per (lambda, seed)
+    assert len(rate_points(res)) == 6 and all(len(p) == 2 for p in rate_points(res))
+    text = format_report(res)
+    assert "Seed mean and spread" in text and "seed-mean curves" in text
+    assert "0.004 s1" in text
+    paths = write_report(res, tmp_path)
+    assert (tmp_path / "rd.png").stat().st_size > 1000 and paths["report"].exists()
+
+
+def test_a_lambda_missing_a_seed_stays_off_the_mean_curve():
+    from baseline.eval.report import seed_mean_points
+
+    res = seeded_results()
+    res["runs"] = [r for r in res["runs"] if not (r["lmbda"] == 0.004 and r["seed"] == 1)]
+    assert [p["lmbda"] for p in seed_mean_points(res, "baseline")] == LAMBDAS[:2]
+    bd = {b["seed"]: b for b in compute_bd(res)}
+    assert bd["mean"]["bd_rate"] is None and "needs >= 3" in bd["mean"]["note"]
+    assert bd[0]["bd_rate"] == pytest.approx(-20.0, abs=1e-4)

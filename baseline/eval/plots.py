@@ -12,7 +12,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from baseline.eval.report import GROUP_ORDER, MB, method_names, rate_points, runs_of
+from baseline.eval.report import (GROUP_ORDER, MB, method_names, rate_points, runs_of,
+                                   seed_mean_points, seeds_of)
 from baseline.fileio import atomic_path
 
 GROUP_COLORS = {"feature": "#d62728", "anchor": "#1f77b4", "scaling": "#2ca02c",
@@ -47,7 +48,9 @@ def plot_rd(results: dict, path: Path) -> Path:
     fig = _figure(6.4, 4.6)
     ax = fig.add_subplot()
     style = _style(results)
-    for m in method_names(results):
+    if seeds_of(results):
+        _rd_seeded(results, ax, style)
+    for m in (method_names(results) if not seeds_of(results) else []):
         rs = sorted(runs_of(results, m), key=lambda r: r["mb"])
         if not rs:
             continue
@@ -73,6 +76,30 @@ def plot_rd(results: dict, path: Path) -> Path:
     return _save(fig, path)
 
 
+def _rd_seeded(results: dict, ax, style) -> None:
+    """Seed-mean curves (lines, error bars = min..max over the seeds) over each seed's runs
+    (small hollow markers)."""
+    for m in method_names(results):
+        c, mk = style[m]
+        rs = runs_of(results, m)
+        ax.plot([r["mb"] for r in rs], [r["psnr"] for r in rs], ls="", marker=mk, ms=4,
+                mfc="none", color=c, alpha=0.6)
+        pts = seed_mean_points(results, m)
+        if not pts:
+            continue
+        x = [p["mb"] for p in pts]
+        y = [p["psnr"] for p in pts]
+        ax.errorbar(x, y, xerr=[[p["mb"] - p["mb_min"] for p in pts],
+                                [p["mb_max"] - p["mb"] for p in pts]],
+                    yerr=[[p["psnr"] - p["psnr_min"] for p in pts],
+                          [p["psnr_max"] - p["psnr"] for p in pts]],
+                    marker=mk, color=c, lw=1.8, ms=7, capsize=3,
+                    label=f"{m} (mean of {pts[0]['n']} seeds)")
+        for p in pts:
+            ax.annotate(f"λ={p['lmbda']:g}", (p["mb"], p["psnr"]), textcoords="offset points",
+                        xytext=(5, -11), fontsize=7.5, color=c)
+
+
 def plot_bits(results: dict, path: Path) -> Path:
     points = [p for p in rate_points(results) if p]
     bars = [r for p in points for r in p]
@@ -83,7 +110,8 @@ def plot_bits(results: dict, path: Path) -> Path:
     for p in points:
         for r in p:
             xs.append(x)
-            labels.append(f"{r['method']}\nλ={r['lmbda']:g}")
+            labels.append(f"{r['method']}\nλ={r['lmbda']:g}"
+                          + (f" s{r['seed']}" if r.get("seed") is not None else ""))
             x += 1.0
         x += 0.6
     fig = _figure(max(6.0, 1.6 + 1.0 * len(bars)), 5.2)

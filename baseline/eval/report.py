@@ -40,8 +40,45 @@ def method_names(results: dict) -> list[str]:
     return names
 
 
-def runs_of(results: dict, method: str) -> list[dict]:
-    return sorted((r for r in results["runs"] if r["method"] == method), key=lambda r: r["lmbda"])
+def _seed_order(r: dict) -> int:
+    return -1 if r.get("seed") is None else int(r["seed"])
+
+
+def runs_of(results: dict, method: str, seed="any") -> list[dict]:
+    """A method's runs by lambda (then seed); ``seed``: only the runs of that seed."""
+    return sorted((r for r in results["runs"] if r["method"] == method
+                   and (seed == "any" or r.get("seed") == seed)),
+                  key=lambda r: (r["lmbda"], _seed_order(r)))
+
+
+def seeds_of(results: dict) -> list[int]:
+    """The seeds of a comparison run with ``--seeds`` (empty otherwise)."""
+    return sorted({int(r["seed"]) for r in results["runs"] if r.get("seed") is not None})
+
+
+def seed_mean_points(results: dict, method: str) -> list[dict]:
+    """Per lambda, the mean (and min / max) over seeds of a method's size and PSNR: the points
+    of its seed-mean curve. A lambda counts only with every seed of the comparison finished."""
+    seeds = seeds_of(results)
+    out = []
+    by_lam: dict = {}
+    for r in runs_of(results, method):
+        if r.get("seed") is not None:
+            by_lam.setdefault(r["lmbda"], []).append(r)
+    for lm, rs in sorted(by_lam.items()):
+        if sorted(int(r["seed"]) for r in rs) != seeds:
+            continue
+        pt = {"lmbda": lm, "n": len(rs)}
+        for key in ("mb", "psnr", "ssim", "bytes", "gaussians_mean", "mask_on_fraction",
+                    "anchors"):
+            vals = [r.get(key) for r in rs]
+            if any(v is None for v in vals):
+                pt[key] = pt[key + "_min"] = pt[key + "_max"] = None
+                continue
+            pt[key] = sum(vals) / len(vals)
+            pt[key + "_min"], pt[key + "_max"] = min(vals), max(vals)
+        out.append(pt)
+    return out
 
 
 def ordered_runs(results: dict) -> list[dict]:
@@ -52,6 +89,9 @@ def baseline_partner(results: dict, row: dict) -> Optional[dict]:
     """The baseline run ``row`` is measured against: same lambda; else the only one of each."""
     base = runs_of(results, results.get("baseline", "baseline"))
     same = [b for b in base if b["lmbda"] == row["lmbda"]]
+    paired = [b for b in same if b.get("seed") == row.get("seed")]
+    if paired:                      # the same seed's run where the comparison has seeds
+        return paired[0]
     if same:
         return same[0]
     if len(base) == 1 and len(runs_of(results, row["method"])) == 1:
@@ -66,6 +106,13 @@ def rate_points(results: dict) -> list[list[dict]]:
     still under way, is simply absent from that point); by rank only when their lambdas are
     disjoint (methods with rate points of their own)."""
     names = method_names(results)
+    seeds = seeds_of(results)
+    if seeds:                       # one point per (lambda, seed)
+        keys = list(dict.fromkeys((r["lmbda"], r.get("seed")) for m in names
+                                  for r in runs_of(results, m)))
+        keys.sort(key=lambda k: (k[0], -1 if k[1] is None else k[1]))
+        return [[r for m in names for r in runs_of(results, m)
+                 if (r["lmbda"], r.get("seed")) == k] for k in keys]
     per = [runs_of(results, m) for m in names]
     lam_lists = [[r["lmbda"] for r in rs] for rs in per if rs]
     union = list(dict.fromkeys(lm for ls in lam_lists for lm in ls))
@@ -79,31 +126,46 @@ def others_bytes(row: dict) -> int:
     return row["bytes"] - row["groups"].get("feature", 0)
 
 
+def _bd_item(method: str, seed, base: list[dict], rs: list[dict]) -> dict:
+    """BD-rate / BD-PSNR of points ``rs`` against ``base`` (each a dict with mb and psnr)."""
+    item = {"method": method, "seed": seed, "points": len(rs), "baseline_points": len(base),
+            "bd_rate": None, "bd_psnr": None, "note": ""}
+    if min(len(rs), len(base)) < BD_MIN_POINTS:
+        item["note"] = (f"needs >= {BD_MIN_POINTS} rate points per method "
+                        f"(have {len(rs)}, baseline {len(base)})")
+        return item
+    args = ([b["mb"] for b in base], [b["psnr"] for b in base],
+            [r["mb"] for r in rs], [r["psnr"] for r in rs])
+    notes = []
+    for key, fn in (("bd_rate", bd_rate), ("bd_psnr", bd_psnr)):
+        try:
+            item[key] = fn(*args)
+        except BDError as e:      # each measure needs its own overlap: keep the other
+            notes.append(str(e))
+    item["note"] = "; ".join(notes)
+    return item
+
+
 def compute_bd(results: dict) -> list[dict]:
-    """BD-rate (size in MB) and BD-PSNR (decoded PSNR) of each method against the baseline."""
+    """BD-rate (size in MB) and BD-PSNR (decoded PSNR) of each method against the baseline.
+
+    With seeds (``pgs compare --seeds``): one item per seed (the method's and the baseline's
+    runs of that seed) and one on the seed-mean curves (``seed`` = "mean": per lambda the mean
+    size and PSNR over the seeds), the comparison's answer; the per-seed items show its spread.
+    """
     base_name = results.get("baseline", "baseline")
-    base = runs_of(results, base_name)
+    seeds = seeds_of(results)
     out = []
     for m in method_names(results):
         if m == base_name:
             continue
-        rs = runs_of(results, m)
-        item = {"method": m, "points": len(rs), "baseline_points": len(base), "bd_rate": None,
-                "bd_psnr": None, "note": ""}
-        if min(len(rs), len(base)) < BD_MIN_POINTS:
-            item["note"] = (f"needs >= {BD_MIN_POINTS} rate points per method "
-                            f"(have {len(rs)}, baseline {len(base)})")
-        else:
-            args = ([b["mb"] for b in base], [b["psnr"] for b in base],
-                    [r["mb"] for r in rs], [r["psnr"] for r in rs])
-            notes = []
-            for key, fn in (("bd_rate", bd_rate), ("bd_psnr", bd_psnr)):
-                try:
-                    item[key] = fn(*args)
-                except BDError as e:      # each measure needs its own overlap: keep the other
-                    notes.append(str(e))
-            item["note"] = "; ".join(notes)
-        out.append(item)
+        if not seeds:
+            out.append(_bd_item(m, None, runs_of(results, base_name), runs_of(results, m)))
+            continue
+        for sd in seeds:
+            out.append(_bd_item(m, sd, runs_of(results, base_name, sd), runs_of(results, m, sd)))
+        out.append(_bd_item(m, "mean", seed_mean_points(results, base_name),
+                            seed_mean_points(results, m)))
     return out
 
 
@@ -138,7 +200,8 @@ def _is_base(results: dict, r: dict) -> bool:
 
 
 def _lam(r: dict) -> str:
-    return f"{r['lmbda']:g}"
+    """The rate point of a run: its lambda, and its seed in a comparison with seeds."""
+    return f"{r['lmbda']:g}" + (f" s{r['seed']}" if r.get("seed") is not None else "")
 
 
 class Table:
@@ -399,21 +462,63 @@ def _not_shown(results: dict, kept: Callable[[dict], bool], what: str) -> list[s
 
 def bd_table(results: dict) -> Table:
     bd = results.get("bd") or compute_bd(results)
+    seeded = any(b.get("seed") is not None for b in bd)
     rows, foot = [], []
     for b in bd:
         mark = ""
         if b["note"]:
             foot.append(f"({len(foot) + 1}) {b['method']}: {b['note']}")
             mark = f"({len(foot)})"
-        rows.append([b["method"], f"{b['points']} vs {b['baseline_points']}",
+        sd = b.get("seed")
+        curve = ([("seed-mean curves" if sd == "mean" else f"seed {sd}")] if seeded else [])
+        rows.append([b["method"]] + curve + [f"{b['points']} vs {b['baseline_points']}",
                      "-" if b["bd_rate"] is None else f"{b['bd_rate']:+.2f}",
                      "-" if b["bd_psnr"] is None else f"{b['bd_psnr']:+.3f}", mark])
+    notes = foot + ["Piecewise cubic (PCHIP) interpolation of log10(size) vs PSNR (BD-rate) "
+                    "and PSNR vs log10(size) (BD-PSNR), integrated over the overlapping "
+                    "interval; size = file MB. Negative BD-rate = fewer bytes at equal PSNR. "
+                    "This, not a pair of runs at one lambda, is the rate-distortion comparison: "
+                    "lambda only moves each method along its own curve."]
+    if seeded:
+        notes.append("Per seed: the method's and the baseline's runs of that seed; seed-mean "
+                     "curves: per lambda the mean size and PSNR over the seeds (a lambda "
+                     "counts once every seed has finished), the comparison's answer; the "
+                     "per-seed rows show how far one seed moves it.")
     return Table(f"Bjontegaard deltas against {results.get('baseline', 'baseline')}",
-                 ["method", "points", "BD-rate (%)", "BD-PSNR (dB)", "note"], rows,
-                 foot + ["Piecewise cubic (PCHIP) interpolation of log10(size) vs PSNR (BD-rate) "
-                         "and PSNR vs log10(size) (BD-PSNR), integrated over the overlapping "
-                         "interval; size = file MB. Negative BD-rate = fewer bytes at equal PSNR."],
-                 left=1)
+                 ["method"] + (["curve"] if seeded else []) +
+                 ["points", "BD-rate (%)", "BD-PSNR (dB)", "note"], rows, notes,
+                 left=2 if seeded else 1)
+
+
+def seed_table(results: dict) -> Optional[Table]:
+    """Per method and lambda: the seed mean and spread (max - min) of PSNR, size and the counts
+    that move with the masks. None without seeds."""
+    seeds = seeds_of(results)
+    if not seeds:
+        return None
+    rows = []
+    for m in method_names(results):
+        for pt in seed_mean_points(results, m):
+            def ms(key, nd, pct=False):
+                v = pt.get(key)
+                if v is None:
+                    return "-"
+                lo, hi = pt[key + "_min"], pt[key + "_max"]
+                if pct:
+                    return f"{100 * v:.1f}% ({100 * (hi - lo):.1f})"
+                sp = (f"{100 * (hi - lo) / v:.1f}%" if key in ("mb", "gaussians_mean", "anchors")
+                      and v else f"{hi - lo:.{nd}f}")
+                return f"{v:.{nd}f} ({sp})"
+            rows.append([m, f"{pt['lmbda']:g}", str(pt["n"]), ms("psnr", 3), ms("ssim", 4),
+                         ms("mb", 4), ms("mask_on_fraction", 1, pct=True),
+                         ms("gaussians_mean", 0), ms("anchors", 0)])
+    return Table(f"Seed mean and spread (seeds {', '.join(map(str, seeds))})",
+                 ["method", "lambda", "seeds", "PSNR (dB)", "SSIM", "size (MB)", "masks on",
+                  "Gaussians/view", "anchors"], rows,
+                 ["Each cell: the mean over the seeds and, in brackets, the spread (max - min; "
+                  "for size, Gaussians and anchors in percent of the mean). Differences between "
+                  "methods smaller than the spread are not measured differences. A lambda is "
+                  "shown once every seed has finished."], left=2)
 
 
 def protocol_lines(results: dict) -> list[tuple[str, str]]:
@@ -537,8 +642,9 @@ def _reference_line(results: dict) -> str:
 
 def all_tables(results: dict) -> list[Table]:
     elements, alive = elements_table(results), alive_table(results)
-    ref = reference_table(results)
-    return ([quality_table(results)] + ([ref] if ref is not None else [])
+    ref, seeds = reference_table(results), seed_table(results)
+    return ([quality_table(results)] + ([seeds] if seeds is not None else [])
+            + ([ref] if ref is not None else [])
             + [groups_table(results), table3(results)]
             + section_tables(results) + ([elements] if elements is not None else [])
             + [speed_table(results)] + ([alive] if alive is not None else [])
