@@ -32,7 +32,7 @@ def _build_cfg(args):
         sets.append(f"data.resolution={args.resolution}")
     if getattr(args, "images", None):
         sets.append(f'data.images="{args.images}"')
-    if getattr(args, "iterations", None):
+    if getattr(args, "iterations", None) is not None:
         sets.append(f"train.iterations={args.iterations}")
     if getattr(args, "device", None):
         sets.append(f'train.device="{args.device}"')
@@ -197,19 +197,12 @@ def cmd_info(args) -> int:
 
 def cmd_export_ply(args) -> int:
     from baseline.eval.export import export_run_ply
-    from baseline.run import coding_positions, load_run
+    from baseline.run import coded_state, load_run
 
     trainer, scene = load_run(args.run, device="cpu")
     out = args.output or str(Path(args.run) / "point_cloud.ply")
-    values = None
-    xyz_q = coding_positions(trainer)
-    if xyz_q is not None:      # export what the codec would store: quantized values
-        import torch
-
-        idx = torch.arange(trainer.model.n_anchors)
-        hard = (trainer.model.gaussian_mask().detach() > 0).float()
-        values = trainer.entropy.quantize_for_coding(xyz_q, trainer.model.coded_values(idx), hard)
-    n = export_run_ply(trainer.model, scene.train_cameras, out, values)
+    # in the adaptive phase: what the codec would store (quantized values, 16-bit positions)
+    n = export_run_ply(trainer.model, scene.train_cameras, out, coded=coded_state(trainer))
     print(f"wrote {n} Gaussians to {out}")
     return 0
 
@@ -256,7 +249,7 @@ def cmd_compare(args) -> int:
         sets.append(f"data.resolution={args.resolution}")
     if args.images:
         sets.append(f'data.images="{args.images}"')
-    if args.iterations:
+    if args.iterations is not None:
         sets.append(f"train.iterations={args.iterations}")
     try:
         results = run_compare(args.scene, args.out, vs=args.vs, lambdas=args.lambdas,

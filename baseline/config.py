@@ -331,14 +331,82 @@ def build_config(patches: list[str] = (), sets: list[str] = ()) -> Config:
     return cfg
 
 
+INF = float("inf")
+# Numeric ranges of the baseline's keys: (section, key) -> (low, high), inclusive; a list key
+# checks each element. Every float key must also be finite. Plugin sections declare their own
+# as a ``RANGES = {key: (low, high)}`` class attribute of their dataclass. The caps keep every
+# allocation a config (or a file's header, which carries one) can ask for bounded.
+RANGES = {
+    ("data", "resolution"): (-1, 1 << 16), ("data", "test_every"): (1, 1 << 20),
+    ("data", "random_init_points"): (1, 1 << 26), ("data", "random_init_extent"): (1e-9, 1e9),
+    ("data", "near"): (1e-9, 1e9),
+    ("model", "feat_dim"): (1, 1024), ("model", "n_offsets"): (1, 64),
+    ("model", "hidden"): (1, 4096), ("model", "voxel_size"): (-1e9, 1e9),
+    ("model", "update_init_factor"): (1, 1 << 16), ("model", "update_hierarchy_factor"): (1, 1 << 10),
+    ("model", "update_depth"): (1, 16),
+    ("densify", "stat_from"): (0, 1 << 31), ("densify", "update_from"): (0, 1 << 31),
+    ("densify", "update_until"): (0, 1 << 31), ("densify", "update_interval"): (1, 1 << 31),
+    ("densify", "skip_from"): (0, 1 << 31), ("densify", "skip_until"): (0, 1 << 31),
+    ("densify", "grad_threshold"): (0, 1e9), ("densify", "success_threshold"): (0, 1e9),
+    ("densify", "min_opacity"): (0, 1), ("densify", "prune_clamp_log_scaling"): (-1e9, 1e9),
+    ("train", "iterations"): (1, 1 << 31), ("train", "schedule_base"): (1, 1 << 31),
+    ("train", "seed"): (0, (1 << 63) - 1), ("train", "lambda_dssim"): (0, 1),
+    ("train", "lambda_volume"): (0, 1e9), ("train", "threads"): (0, 1 << 16),
+    ("train", "checkpoint_every"): (0, 1 << 31), ("train", "log_every"): (1, 1 << 31),
+    ("grid", "resolutions_3d"): (2, 1 << 16), ("grid", "resolutions_2d"): (2, 1 << 16),
+    ("grid", "log2_table_3d"): (1, 24), ("grid", "log2_table_2d"): (1, 24),
+    ("grid", "n_features"): (1, 16),
+    ("entropy", "lmbda"): (0, 1e9), ("entropy", "noise_from"): (0, 1 << 31),
+    ("entropy", "context_from"): (0, 1 << 31), ("entropy", "mask_lambda"): (0, 1e9),
+    ("entropy", "mask_threshold"): (1e-12, 1 - 1e-12), ("entropy", "rate_sample"): (1e-12, 1),
+    ("entropy", "context_hidden"): (1, 4096), ("entropy", "position_bits"): (1, 16),
+    ("entropy", "rate_values_per_anchor"): (0, 1 << 20),
+}
+RANGES.update({("lr", f.name): (0, 1e3) for f in dataclasses.fields(LRConfig)
+               if f.type in (float, "float")})
+MAX_GRID_LEVELS = 32
+
+
+def _check_ranges(obj: Any, section: str, ranges: dict) -> None:
+    """Types are checked on merge; here: finiteness of floats and the declared ranges."""
+    import math
+
+    for f in dataclasses.fields(obj):
+        v = getattr(obj, f.name)
+        key = f"{section}.{f.name}"
+        if dataclasses.is_dataclass(v):
+            _check_ranges(v, key, {k[1]: r for k, r in RANGES.items() if k[0] == f.name})
+            continue
+        vals = v if isinstance(v, list) else [v]
+        if isinstance(v, list) and f.name.startswith("resolutions") and len(v) > MAX_GRID_LEVELS:
+            raise ConfigError(f"{key}: at most {MAX_GRID_LEVELS} levels, got {len(v)}")
+        for x in vals:
+            if isinstance(x, float) and not math.isfinite(x):
+                raise ConfigError(f"{key} must be finite, got {x}")
+        rng = ranges.get(f.name)
+        if rng is None:
+            continue
+        lo, hi = rng
+        for x in vals:
+            if isinstance(x, bool) or not isinstance(x, (int, float)):
+                continue
+            if not lo <= x <= hi:
+                raise ConfigError(f"{key} = {x} is out of range [{lo}, {hi}]")
+
+
 def validate(cfg: Config) -> None:
+    """Ranges and finiteness of every numeric key (:data:`RANGES`, plugin ``RANGES``), then the
+    keys with a fixed set of values. Errors name the key."""
+    for f in dataclasses.fields(cfg):
+        if f.name in ("patches", "ext"):
+            continue
+        _check_ranges(getattr(cfg, f.name), f.name,
+                      {k[1]: r for k, r in RANGES.items() if k[0] == f.name})
+    for name, sec in cfg.ext.items():
+        if dataclasses.is_dataclass(sec):
+            _check_ranges(sec, name, dict(getattr(type(sec), "RANGES", {})))
     if cfg.train.iterations <= 0:
         raise ConfigError("train.iterations must be positive")
-    if not (cfg.data.near > 0 and cfg.data.near < 1e9):
-        raise ConfigError(f"data.near must be a positive finite depth, got {cfg.data.near}")
-    if cfg.entropy.rate_values_per_anchor < 0:
-        raise ConfigError(f"entropy.rate_values_per_anchor must be >= 0 (0: the method's own "
-                          f"coded values per anchor), got {cfg.entropy.rate_values_per_anchor}")
     if cfg.data.background not in ("black", "white"):
         raise ConfigError(f"data.background must be 'black' or 'white', got '{cfg.data.background}'")
     dev = cfg.train.device

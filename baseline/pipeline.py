@@ -52,6 +52,29 @@ def quantized_positions(xyz: torch.Tensor, coded: torch.Tensor) -> torch.Tensor:
     return torch.from_numpy(dequantize_positions(q, lo, hi)).to(xyz.device)
 
 
+@dataclass
+class CodedState:
+    """A trained model's anchors as the codec will store them, for pre-encode evaluation:
+    ``index`` [M] the coded anchors (any Gaussian mask on), ``xyz`` [M,3] their 16-bit
+    positions, ``values`` {attribute: [M,d]} quantized exactly as the encoder quantizes them (one
+    pass over all coded anchors, so the clamp's mean is the encoder's). Rendering from it
+    prefilters with these positions and scalings, as the decoded model does."""
+    index: torch.Tensor
+    xyz: torch.Tensor
+    values: dict
+
+
+@torch.no_grad()
+def coded_state(model, entropy) -> CodedState:
+    """The :class:`CodedState` of ``model`` in HAC's adaptive phase."""
+    valid = model.anchor_valid()
+    index = valid.nonzero()[:, 0]
+    xyz = quantized_positions(model.xyz, valid)[index]
+    hard = (model.gaussian_mask(index).detach() > 0).float()
+    values = entropy.quantize_for_coding(xyz, model.coded_values(index), hard)
+    return CodedState(index=index, xyz=xyz, values=values)
+
+
 def visible_anchors(model, cam: Camera) -> torch.Tensor:
     """[M] indices of the anchors that pass the prefilter for ``cam``."""
     with torch.no_grad():
@@ -63,7 +86,7 @@ def visible_anchors(model, cam: Camera) -> torch.Tensor:
 def render_view(model, cam: Camera, background: torch.Tensor, *, phase: str = "none",
                 training: bool = False, entropy=None, rate_sample: float = 0.0,
                 backend: str = "auto", generator: Optional[torch.Generator] = None,
-                quantized_xyz: Optional[torch.Tensor] = None,
+                coded: Optional[CodedState] = None,
                 decoder_quant: str = "noise") -> ViewResult:
     """Render one view.
 
@@ -74,12 +97,25 @@ def render_view(model, cam: Camera, background: torch.Tensor, *, phase: str = "n
         phase: none | noise | adaptive | decoded.
         entropy: entropy model (needed for ``adaptive``).
         rate_sample: fraction of visible, valid anchors on which bits are estimated (training).
-        quantized_xyz: [N,3] positions to decode from in evaluation of the ``adaptive`` phase
-            (the 16-bit positions the codec stores); default: the stored positions.
+        coded: evaluation of the ``adaptive`` phase: the anchors as the codec stores them
+            (:func:`coded_state`: 16-bit positions, values quantized over all coded anchors),
+            prefiltered with those positions and scalings, as the decoded model is. Without
+            it the visible anchors' values are quantized per view (the clamp's mean then
+            taken over the visible ones) and the prefilter reads the raw positions and
+            scalings.
         decoder_quant: in training, what the decoder sees in the ``noise`` and ``adaptive``
             phases: ``noise`` (HAC: x + U(-0.5, 0.5) Q) or ``ste`` (the rounded values of
             evaluation, straight-through gradient; the rate is still estimated with noise).
     """
+    if phase == "adaptive" and not training and coded is not None:
+        scales = coded.values["scaling"][:, :3]
+        vis = prefilter_anchors(coded.xyz, scales, cam)
+        idx = coded.index[vis]
+        g = model.decode(cam.center, idx, {k: v[vis] for k, v in coded.values.items()},
+                         xyz=coded.xyz[vis])
+        out = rasterize(g.means, g.quats, g.scales, g.opacities, g.colors, cam,
+                        background=background, backend=backend)
+        return ViewResult(render=out, gaussians=g, camera=cam)
     idx = visible_anchors(model, cam)
     if phase == "decoded" and getattr(model, "baked", None) is not None \
             and not torch.is_grad_enabled():
@@ -113,8 +149,6 @@ def render_view(model, cam: Camera, background: torch.Tensor, *, phase: str = "n
                                    decoder_quant=decoder_quant)
             n_rate = int(choose.sum())
         else:
-            if quantized_xyz is not None:
-                xyz = quantized_xyz[idx]
             hard = (gmask.detach() > 0).float()
             values = entropy.quantize_for_coding(xyz, values, hard)
     elif phase not in ("none", "decoded"):

@@ -96,13 +96,14 @@ def train_run(scene_path: str, out: str | Path, cfg: Config, resume: bool = Fals
     return results
 
 
-def coding_positions(trainer: Trainer):
-    """[N,3] positions as the codec stores them (16-bit) in the adaptive phase, else None."""
+def coded_state(trainer: Trainer):
+    """The anchors as the codec stores them (:class:`baseline.pipeline.CodedState`) in the
+    adaptive phase, else None."""
     if trainer.phase != "adaptive":
         return None
-    from baseline.pipeline import quantized_positions
+    from baseline.pipeline import coded_state as _coded
 
-    return quantized_positions(trainer.model.xyz, trainer.model.anchor_valid())
+    return _coded(trainer.model, trainer.entropy)
 
 
 def evaluate_trainer(trainer: Trainer, scene, render_dir: Optional[Path] = None, lpips_fn=None) -> dict:
@@ -110,7 +111,7 @@ def evaluate_trainer(trainer: Trainer, scene, render_dir: Optional[Path] = None,
 
     cams = scene.test_cameras or scene.train_cameras
     return evaluate(trainer.model, scene, cams, phase=trainer.phase, entropy=trainer.entropy,
-                    backend=trainer.cfg.train.rasterizer, quantized_xyz=coding_positions(trainer),
+                    backend=trainer.cfg.train.rasterizer, coded=coded_state(trainer),
                     render_dir=render_dir, lpips_fn=lpips_fn)
 
 
@@ -144,7 +145,7 @@ class Renderable:
         target = Path(target)
         self.target = target
         self.entropy = None
-        self.xyz_q = None
+        self.coded = None
         if target.is_file():
             from baseline.codec.model_codec import decode_model
 
@@ -163,7 +164,7 @@ class Renderable:
             self.trainer = trainer
             self.cfg, self.model, self.phase = trainer.cfg, trainer.model, trainer.phase
             self.entropy = trainer.entropy
-            self.xyz_q = coding_positions(trainer)
+            self.coded = coded_state(trainer)
             scene_path = scene_override or json.loads((target / "scene.json").read_text())["path"]
             if scene_override is None:
                 self.scene = scene
@@ -177,5 +178,5 @@ class Renderable:
         cams = self.scene.test_cameras if split == "test" else self.scene.train_cameras
         cams = cams or self.scene.train_cameras
         return evaluate(self.model, self.scene, cams, phase=self.phase, entropy=self.entropy,
-                        backend=self.cfg.train.rasterizer, quantized_xyz=self.xyz_q,
+                        backend=self.cfg.train.rasterizer, coded=self.coded,
                         render_dir=render_dir, lpips_fn=lpips_fn)

@@ -9,6 +9,13 @@ from dataclasses import dataclass
 
 @dataclass
 class PredictConfig:
+    # numeric ranges, checked with the baseline's keys (baseline.config.validate)
+    RANGES = {"fusion_hidden": (1, 4096), "residual_dim": (0, 1024), "residual_from": (0, 1 << 31),
+              "mgrd_hidden": (1, 4096), "d_s": (1e-3, 16.0), "d_e": (1e-3, 16.0),
+              "T": (0, 1 << 31), "lr_residual": (0, 1e3), "lr_grid_init": (0, 1e3),
+              "lr_grid_final": (0, 1e3), "lr_fusion_init": (0, 1e3), "lr_fusion_final": (0, 1e3),
+              "lr_mgrd_init": (0, 1e3), "lr_mgrd_final": (0, 1e3)}
+
     # Spatial Feature Pool (its own binary hash grid, HAC layout) + two-layer fusion MLP -> 50.
     fusion_hidden: int = 64            # choose: the paper gives two layers and the 50-dim output only
     grid_auto: bool = False            # size the SFP tables from the anchor count

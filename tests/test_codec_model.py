@@ -16,7 +16,7 @@ from baseline.data.synthetic import make_scene
 from baseline.eval.evaluate import evaluate
 from baseline.hac.entropy import LIKELIHOOD_FLOOR, gaussian_likelihood
 from baseline.hac.quant import ste_round
-from baseline.pipeline import quantized_positions
+from baseline.pipeline import coded_state
 from baseline.train.trainer import Trainer
 
 ITERS = 300
@@ -43,13 +43,12 @@ def encoded(request, scene, tmp_path_factory):
     d = tmp_path_factory.mktemp(f"codec_{request.param}")
     patches = () if request.param == "baseline" else ("predict-gs",)
     t = _trained(scene, d / "run", patches)
-    xyz_q_all = quantized_positions(t.model.xyz, t.model.anchor_valid())
     pre = evaluate(t.model, scene, scene.test_cameras, phase="adaptive", entropy=t.entropy,
-                   backend="cpu", quantized_xyz=xyz_q_all, render_dir=d / "pre")
+                   backend="cpu", coded=coded_state(t.model, t.entropy), render_dir=d / "pre")
     st = encode_model(t.cfg, t.model, t.entropy, d / "m.pgs", extra_header={"scene": "x"})
     # after encoding the weights are at stored precision: render again (what the file holds)
     pre_rounded = evaluate(t.model, scene, scene.test_cameras, phase="adaptive", entropy=t.entropy,
-                           backend="cpu", quantized_xyz=xyz_q_all)
+                           backend="cpu", coded=coded_state(t.model, t.entropy))
     return dict(trainer=t, stats=st, path=d / "m.pgs", pre=pre, pre_rounded=pre_rounded, dir=d)
 
 
@@ -65,7 +64,9 @@ def test_decoded_attributes_bit_identical(encoded):
 def test_decoded_render_matches_pre_encode(encoded, scene):
     dec = decode_model(encoded["path"])
     post = evaluate(dec.model, scene, scene.test_cameras, phase="decoded", backend="cpu")
-    assert abs(post["psnr"] - encoded["pre_rounded"]["psnr"]) < 0.01
+    # the pre-encode render prefilters and decodes what the file holds: the same Gaussians
+    assert post["psnr"] == encoded["pre_rounded"]["psnr"]
+    assert post["gaussians_mean"] == encoded["pre_rounded"]["gaussians_mean"]
     assert abs(post["psnr"] - encoded["pre"]["psnr"]) < 0.01     # float32 weights: no change
 
 
@@ -304,6 +305,27 @@ def test_an_uncoded_anchor_far_outside_moves_nothing(encoded, scene, tmp_path):
     for k, v in a.model.fixed_values.items():
         assert torch.equal(v, b.model.fixed_values[k]), k
     pre = evaluate(far, scene, scene.test_cameras, phase="adaptive", entropy=t.entropy,
-                   backend="cpu", quantized_xyz=quantized_positions(far.xyz, far.anchor_valid()))
+                   backend="cpu", coded=coded_state(far, t.entropy))
     post = evaluate(b.model, scene, scene.test_cameras, phase="decoded", backend="cpu")
     assert abs(post["psnr"] - pre["psnr"]) < 0.01
+
+
+def test_a_huge_scaling_renders_alike_before_and_after_coding(encoded, scene, tmp_path):
+    """An anchor with log-scaling 30: the codec clamps its scaling to mean +- 15000 Q (the mean
+    over every coded anchor). The pre-encode evaluation must render what the file holds: the
+    clamp's mean over all coded anchors (not the visible ones of a view) and the prefilter on
+    the coded scalings and positions (not the raw ones)."""
+    import copy
+
+    t = encoded["trainer"]
+    model = copy.deepcopy(t.model)
+    i = int(torch.nonzero(model.anchor_valid())[0, 0])
+    with torch.no_grad():
+        model.per_anchor["scaling"][i] = 30.0
+    path = tmp_path / "huge.pgs"
+    encode_model(t.cfg, model, t.entropy, path, extra_header={"scene": "x"})
+    pre = evaluate(model, scene, scene.test_cameras, phase="adaptive", entropy=t.entropy,
+                   backend="cpu", coded=coded_state(model, t.entropy))
+    post = evaluate(decode_model(path).model, scene, scene.test_cameras, phase="decoded",
+                    backend="cpu")
+    assert pre["psnr"] == post["psnr"] and pre["gaussians_mean"] == post["gaussians_mean"]

@@ -16,7 +16,7 @@ from baseline.config import ConfigError, build_config, config_hash
 from baseline.data.synthetic import make_scene
 from baseline.device import DeviceError, resolve_device, uniform
 from baseline.eval.evaluate import evaluate
-from baseline.pipeline import quantized_positions
+from baseline.pipeline import coded_state
 from baseline.run import load_run, train_run
 
 needs_cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
@@ -122,7 +122,7 @@ def test_gpu_run_encodes_on_the_cpu_and_decodes_exactly(cuda_run):
         assert torch.equal(v, dec.model.fixed_values[k]), k
     cams = scene.test_cameras
     pre = evaluate(t.model, scene, cams, phase="adaptive", entropy=t.entropy, backend="cpu",
-                   quantized_xyz=quantized_positions(t.model.xyz, t.model.anchor_valid()))
+                   coded=coded_state(t.model, t.entropy))
     post_cpu = evaluate(dec.model, scene, cams, phase="decoded", backend="cpu")
     assert abs(post_cpu["psnr"] - pre["psnr"]) < 0.01
     dec.model.to("cuda")                 # fixed values (and the SFP's cache) move with it

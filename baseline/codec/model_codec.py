@@ -36,6 +36,7 @@ import torch
 import torch.nn as nn
 
 from baseline.codec.container import BitstreamError, read_container, write_container
+from baseline.codec.header import check_header, digest_sections
 from baseline.codec.masks import decode_mask_patterns, encode_mask_patterns, mask_pattern_counts
 from baseline.codec.positions import decode_positions, encode_positions
 from baseline.codec.rangecoder import (anchor_bounds, bernoulli_counts, decode_bernoulli,
@@ -71,6 +72,12 @@ def _module_sections(prefix: str, module: nn.Module, precision: str,
     blob = pack_state_dict(module.state_dict(), precision, exclude=exclude, keep=bounds)
     out.append((f"{prefix}.weights", blob))
     return out
+
+
+def _has_state(provider) -> bool:
+    """Whether a feature provider owns networks or grids, coded as ``provider.*`` sections (the
+    explicit feature table owns none: its values are a coded attribute)."""
+    return any(p.numel() for p in provider.parameters()) or bool(_grid_modules(provider))
 
 
 def _module_states(model) -> dict:
@@ -158,9 +165,8 @@ def encode_model(cfg, model, entropy, path: str | Path, extra_header: Optional[d
     em = entropy.serialize(precision, used_xyz=used_xyz)   # rounds its weights first
     sections += [(f"em.{k}", v) for k, v in em.items()]
     sections += _module_sections("decoder", model.decoder, precision)
-    provider_sections = _module_sections("provider", model.provider, precision, used_xyz)
-    if any(p.numel() for p in model.provider.parameters()) or len(provider_sections) > 1:
-        sections += provider_sections
+    if _has_state(model.provider):
+        sections += _module_sections("provider", model.provider, precision, used_xyz)
     if model.refiner is not None:
         sections += _module_sections("refiner", model.refiner, precision)
     values = model.coded_values(idx)
@@ -188,6 +194,7 @@ def encode_model(cfg, model, entropy, path: str | Path, extra_header: Optional[d
         header["grid_coding"] = grid_coding
     if extra_header:
         header.update(extra_header)
+    header.update(digest_sections(sections))      # binds every section to this file
     size = write_container(path, header, sections)
     return {"bytes": size, "anchors": N, "encode_s": time.perf_counter() - t0,
             "sections": {n: len(b) for n, b in sections}, "values": vq, "xyz_q": xyz_q,
@@ -236,76 +243,96 @@ class DecodedModel:
 
 
 @torch.no_grad()
-def decode_model(path: str | Path) -> DecodedModel:
-    """Rebuild the model from a ``.pgs`` file alone (BitstreamError names any bad section)."""
+def decode_model(path: str | Path, max_bytes: Optional[int] = None) -> DecodedModel:
+    """Rebuild the model from a ``.pgs`` file alone.
+
+    Every failure is one :class:`BitstreamError` naming the file and the section or header
+    field: the header is checked field by field and against the sections (their keyed digests
+    bind them to this file) before anything is allocated, and the planned allocation against
+    ``max_bytes`` (default :func:`baseline.codec.header.memory_budget`).
+    """
+    try:
+        return _decode_model(path, max_bytes)
+    except BitstreamError as e:
+        msg = str(e)
+        raise BitstreamError(msg if msg.startswith(str(path)) else f"{path}: {msg}") from None
+
+
+def _decode_model(path, max_bytes) -> DecodedModel:
     from baseline import registry
-    from baseline.config import ConfigError, apply_overlay, default_config
+    from baseline.config import ConfigError, apply_overlay, default_config, validate
     from baseline.hac.entropy import build_entropy_model
     from baseline.scaffold.model import AnchorModel
 
     t0 = time.perf_counter()
     header, sections = read_container(path)
-    if header.get("format") != FORMAT:
-        raise BitstreamError(f"{path}: header format {header.get('format')!r}, expected {FORMAT!r}")
-    try:
-        N, K = int(header["n_anchors"]), int(header["n_offsets"])
-        lo, hi = (np.asarray(b, dtype=np.float32) for b in header["position_bounds"])
-        cfg_dict = dict(header["config"])
-        ent_cfg = header["entropy"]
-        states = dict(header.get("module_state", {}))
-    except (KeyError, TypeError, ValueError) as e:
-        raise BitstreamError(f"{path}: header is missing or has a bad field: {e}") from None
+    size = Path(path).stat().st_size if not isinstance(path, (bytes, bytearray)) else len(path)
+    facts = check_header(header, sections, size, max_bytes)
+    N, K = facts.n_anchors, facts.n_offsets
+    lo, hi = (np.asarray(b, dtype=np.float32) for b in facts.bounds)
+    cfg_dict = dict(header["config"])
+    ent_cfg = header["entropy"]
+    states = dict(header.get("module_state", {}))
     cfg = default_config()
-    cfg.patches = list(cfg_dict.pop("patches", []))
+    patches = cfg_dict.pop("patches", [])
+    if not isinstance(patches, list) or not all(isinstance(x, str) for x in patches):
+        raise BitstreamError("header field 'config.patches': expected a list of names")
+    cfg.patches = list(patches)
     try:
-        apply_overlay(cfg, cfg_dict, f"the header of {path}")
+        apply_overlay(cfg, cfg_dict, "the header's config")
+        validate(cfg)
     except ConfigError as e:
         raise BitstreamError(f"{e} (is the plugin that wrote this file installed?)") from None
-    for sec in ("positions", "masks"):
-        if sec not in sections:
-            raise BitstreamError(f"missing section '{sec}'")
-    coding = header.get("position_coding", "raw16")
+    if cfg.model.n_offsets != K:
+        raise BitstreamError(f"header field 'config.model.n_offsets' ({cfg.model.n_offsets}) "
+                             f"differs from 'n_offsets' ({K})")
+    try:
+        prov_cls = registry.get("feature_provider", cfg.model.feature_provider)
+        ref_cls = (None if cfg.model.refiner in ("", "none")
+                   else registry.get("refiner", cfg.model.refiner))
+    except KeyError as e:
+        raise BitstreamError(f"header field 'config.model': {e.args[0] if e.args else e} "
+                             f"(is the plugin that wrote this file installed?)") from None
+    coding = facts.position_coding
     if coding == "sorted":
         q = decode_positions(sections["positions"], N)
-    elif coding == "raw16":
+    else:
         q = unpack_positions(sections["positions"], N)
-    else:
-        raise BitstreamError(f"{path}: unknown position coding {coding!r} in the header")
     xyz = torch.from_numpy(dequantize_positions(q, lo, hi))
-    mask_coding = header.get("mask_coding", "bernoulli")
-    if mask_coding == "patterns":
+    if facts.mask_coding == "patterns":
         gm = decode_mask_patterns(sections["masks"], N, K)
-    elif mask_coding == "bernoulli":
-        gm = decode_bernoulli(sections["masks"], expected_n=N * K, what="section 'masks'")
     else:
-        raise BitstreamError(f"{path}: unknown mask coding {mask_coding!r} in the header")
+        gm = decode_bernoulli(sections["masks"], expected_n=N * K, what="section 'masks'")
     gmask = torch.from_numpy(np.asarray(gm, dtype=np.float32).reshape(N, K))
-    prov_cls = registry.get("feature_provider", cfg.model.feature_provider)
-    ref_cls = None if cfg.model.refiner in ("", "none") else registry.get("refiner", cfg.model.refiner)
     try:
         model = AnchorModel(xyz, torch.zeros(N, 6), cfg.model,
                             provider_factory=_factory(prov_cls, cfg, states.get("provider")),
                             refiner_factory=_factory(ref_cls, cfg, states.get("refiner")),
                             mask_threshold=cfg.entropy.mask_threshold)
-    except (ValueError, TypeError) as e:
-        raise BitstreamError(f"{path}: header 'module_state' does not fit the modules: {e}") from None
-    grid_coding = header.get("grid_coding", "all")
-    if grid_coding not in GRID_CODINGS:
-        raise BitstreamError(f"{path}: unknown grid coding {grid_coding!r} in the header")
-    used_xyz = xyz if grid_coding == "used" else None
-    entropy = build_entropy_model(ent_cfg)
+    except (ValueError, TypeError, KeyError) as e:
+        raise BitstreamError(f"header field 'module_state' does not fit the modules: {e}") from None
+    attrs = [a["name"] for a in facts.attrs]
+    want = [(a.name, a.dims, a.masked) for a in model.coded_attributes()]
+    if want != [(a["name"], a["dims"], a["masked"]) for a in facts.attrs]:
+        raise BitstreamError(f"header field 'attrs' ({attrs}) does not match what the "
+                             f"configured model codes ({[w[0] for w in want]})")
+    used_xyz = xyz if facts.grid_coding == "used" else None
+    try:
+        entropy = build_entropy_model(ent_cfg)
+    except (ValueError, TypeError, KeyError) as e:
+        raise BitstreamError(f"header field 'entropy' does not build a model: {e}") from None
     em = {k[3:]: v for k, v in sections.items() if k.startswith("em.")}
     entropy.load_serialized(em, used_xyz=used_xyz)
     _load_module_sections("decoder", model.decoder, sections)
-    if any(n.startswith("provider.") for n in sections):
+    if _has_state(model.provider):
         _load_module_sections("provider", model.provider, sections, used_xyz)
+    elif any(n.startswith("provider.") for n in sections):
+        raise BitstreamError("provider sections in a file whose feature provider has none")
     if model.refiner is not None:
         _load_module_sections("refiner", model.refiner, sections)
         model.refiner.active = True
-    attrs = [a["name"] for a in header["attrs"]]
-    missing = [a for a in attrs if a not in sections]
-    if missing:
-        raise BitstreamError(f"missing attribute section(s) {missing}")
+    elif any(n.startswith("refiner.") for n in sections):
+        raise BitstreamError("refiner sections in a file whose config has no refiner")
     values = entropy.decompress(xyz, {a: sections[a] for a in attrs}, gmask, n=N)
     model.per_anchor["mask"].data = torch.where(gmask > 0, MASK_LOGIT, -MASK_LOGIT)[..., None]
     model.per_anchor["scaling"].data = torch.log(values["scaling"].clamp_min(1e-30))
@@ -331,9 +358,19 @@ def section_group(name: str, header: dict) -> str:
 
 
 def file_info(path: str | Path) -> dict:
-    """Per-section and per-group allocation read from the file itself."""
-    raw = Path(path).read_bytes()
+    """Per-section and per-group allocation read from the file itself (its header checked as
+    the decoder checks it)."""
+    try:
+        raw = Path(path).read_bytes()
+    except FileNotFoundError:
+        raise BitstreamError(f"{path}: no such file") from None
+    except IsADirectoryError:
+        raise BitstreamError(f"{path}: is a directory, not a .pgs file") from None
     header, sections = read_container(raw)
+    try:
+        check_header(header, sections, len(raw), max_bytes=1 << 62)   # reads, allocates nothing
+    except BitstreamError as e:
+        raise BitstreamError(f"{path}: {e}") from None
     rows = [{"section": n, "bytes": len(b), "group": section_group(n, header)}
             for n, b in sections.items()]
     total = len(raw)

@@ -77,8 +77,11 @@ def pack_state_dict(state_dict: Mapping[str, torch.Tensor], precision: str = "fl
     return _HDR.pack(_TAG, len(idx)) + idx + b"".join(chunks)
 
 
-def unpack_state_dict(blob, as_float32: bool = True, what: str = "weights") -> "OrderedDict[str, torch.Tensor]":
-    """Inverse of :func:`pack_state_dict`. float16 tensors come back as float32 by default."""
+def unpack_state_dict(blob, as_float32: bool = True, what: str = "weights",
+                      check_finite: bool = True) -> "OrderedDict[str, torch.Tensor]":
+    """Inverse of :func:`pack_state_dict`. float16 tensors come back as float32 by default.
+    Every floating tensor must be finite (``check_finite``): a decoded network with NaN or Inf
+    weights is refused, naming the tensor, instead of rendering nothing."""
     blob = bytes(blob)
     if len(blob) < _HDR.size:
         raise BitstreamError(f"{what}: truncated weight header")
@@ -98,10 +101,14 @@ def unpack_state_dict(blob, as_float32: bool = True, what: str = "weights") -> "
     for entry in index:
         try:
             name, sname, shape = entry
-            shape = [int(s) for s in shape]
+            if not isinstance(name, str) or not isinstance(shape, list) or len(shape) > 8 \
+                    or not all(isinstance(x, int) and not isinstance(x, bool) for x in shape):
+                raise TypeError
             tdt, npdt = _DTYPES[sname]
         except (TypeError, ValueError, KeyError):
-            raise BitstreamError(f"{what}: damaged weight index entry {entry!r}") from None
+            raise BitstreamError(f"{what}: damaged weight index entry {entry!r:.120}") from None
+        if name in out:
+            raise BitstreamError(f"{what}: tensor '{name}' is listed twice")
         if any(s < 0 for s in shape):
             raise BitstreamError(f"{what}: negative shape for '{name}'")
         count = int(np.prod(shape, dtype=np.float64)) if shape else 1
@@ -116,6 +123,8 @@ def unpack_state_dict(blob, as_float32: bool = True, what: str = "weights") -> "
             t = torch.from_numpy(arr.astype(arr.dtype.newbyteorder("="), copy=True))
         if as_float32 and sname == "float16":
             t = t.float()
+        if check_finite and t.is_floating_point() and not torch.isfinite(t).all():
+            raise BitstreamError(f"{what}: tensor '{name}' holds NaN or Inf values")
         out[name] = t
     if off != len(blob):
         raise BitstreamError(f"{what}: {len(blob) - off} unexpected trailing bytes")

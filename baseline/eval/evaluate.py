@@ -27,13 +27,14 @@ def alive_breakdown(visible: int, mask_on: int, kept: int, views: int, k: int) -
 
 @torch.no_grad()
 def evaluate(model, scene, cameras, *, phase: str, entropy=None, backend: str = "auto",
-             quantized_xyz: Optional[torch.Tensor] = None, render_dir: Optional[Path] = None,
+             coded=None, render_dir: Optional[Path] = None,
              lpips_fn=None, fps_skip: int = 5) -> dict:
     """Render ``cameras`` and report PSNR / SSIM (/ LPIPS) on uint8 images and FPS.
 
     FPS = 1 / mean(prefilter + decode + render time), the first ``fps_skip`` frames skipped
     (SPEC.md section 2); on a GPU each frame is timed to the end of its work. The model renders
-    where it lives (``model.to(device)`` first).
+    where it lives (``model.to(device)`` first). ``coded``: a trained model in the adaptive phase
+    rendered as the codec stores it (:func:`baseline.pipeline.coded_state`).
     """
     bg = scene.background.float().to(model.xyz.device)
     sync = (torch.cuda.synchronize if model.xyz.is_cuda else (lambda *a: None))
@@ -42,7 +43,7 @@ def evaluate(model, scene, cameras, *, phase: str, entropy=None, backend: str = 
     for i, cam in enumerate(cameras):
         t0 = time.perf_counter()
         res = render_view(model, cam, bg, phase=phase, training=False, entropy=entropy,
-                          backend=backend, quantized_xyz=quantized_xyz)
+                          backend=backend, coded=coded)
         img = res.render.image
         sync()                           # CUDA work is asynchronous: time it to the end
         times.append(time.perf_counter() - t0)

@@ -21,9 +21,21 @@ N_REST = 45
 
 
 @torch.no_grad()
-def gaussians_at_view(model, center: torch.Tensor, values: dict | None = None):
-    idx = torch.arange(model.n_anchors, device=model.xyz.device)
-    return model.decode(center, idx, values)
+def gaussians_at_view(model, center: torch.Tensor, values: dict | None = None, coded=None):
+    """Every anchor's neural Gaussians seen from ``center`` [3]; ``coded``
+    (:class:`baseline.pipeline.CodedState`): the coded anchors with their coded values.
+
+    Decoded with one thread: GEMM blocking over many threads may change the last bit of a
+    sum, and the export is one pass, so a file is byte-identical on any machine's threads."""
+    prev = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        if coded is not None:
+            return model.decode(center, coded.index, coded.values, xyz=coded.xyz)
+        idx = torch.arange(model.n_anchors, device=model.xyz.device)
+        return model.decode(center, idx, values)
+    finally:
+        torch.set_num_threads(prev)
 
 
 def write_ply(path: str | Path, means, quats, scales, opacities, colors) -> int:
@@ -60,7 +72,16 @@ def read_ply(path: str | Path) -> dict[str, np.ndarray]:
     return {p: arr[:, i] for i, p in enumerate(props)}
 
 
-def export_run_ply(model, train_cameras, path, values: dict | None = None) -> int:
-    center = torch.stack([c.center for c in train_cameras]).mean(0)
-    g = gaussians_at_view(model, center, values)
+def view_center(train_cameras) -> torch.Tensor:
+    """[3] the export viewpoint: the mean of the training camera centres."""
+    return torch.stack([c.center for c in train_cameras]).double().mean(0).float()
+
+
+def export_run_ply(model, train_cameras, path, values: dict | None = None, coded=None,
+                   center: torch.Tensor | None = None) -> int:
+    """Write ``model``'s neural Gaussians seen from ``center`` (default :func:`view_center` of
+    ``train_cameras``) as a 3DGS PLY; returns the Gaussian count."""
+    if center is None:
+        center = view_center(train_cameras)
+    g = gaussians_at_view(model, center.to(model.xyz.device), values, coded)
     return write_ply(path, g.means, g.quats, g.scales, g.opacities, g.colors)

@@ -58,6 +58,7 @@ import torch.nn.functional as F
 
 from baseline.contracts import CodedAttribute
 from baseline.codec.container import BitstreamError
+from baseline.codec.header import MAX_CHUNK, MAX_ESCAPE
 from baseline.codec.rangecoder import (DEFAULT_ESCAPE_LIMIT, GaussianStreamDecoder,
                                        GaussianStreamEncoder)
 from baseline.codec.weights import pack_state_dict, round_module_, unpack_state_dict
@@ -111,10 +112,10 @@ class EntropyModel(nn.Module):
         self.attrs = attrs
         self.chunk = int(chunk)
         self.escape_limit = int(escape_limit)
-        if not 0 < self.escape_limit < 2 ** 30:
-            raise ValueError(f"escape_limit must be in [1, 2^30), got {escape_limit}")
-        if self.chunk <= 0:
-            raise ValueError(f"chunk must be positive, got {chunk}")
+        if not 0 < self.escape_limit <= MAX_ESCAPE:
+            raise ValueError(f"escape_limit must be in [1, {MAX_ESCAPE}], got {escape_limit}")
+        if not 0 < self.chunk <= MAX_CHUNK:
+            raise ValueError(f"chunk must be in [1, {MAX_CHUNK}], got {chunk}")
         self.pipeline = bool(pipeline)
 
     # ----------------------------------------------------------- to override
@@ -278,11 +279,11 @@ class EntropyModel(nn.Module):
                     raise BitstreamError(f"{a.name}: truncated attribute stream")
                 ch, limit = _BLOB_HDR.unpack_from(blob)
                 chunks.add(ch)
-                if not 0 < limit < 2 ** 30:
+                if not 0 < limit <= MAX_ESCAPE:
                     raise BitstreamError(f"{a.name}: invalid escape limit {limit}")
                 coders[a.name] = GaussianStreamDecoder(blob[_BLOB_HDR.size:], what=a.name, escape_limit=limit)
             chunk = chunks.pop()
-            if chunks or chunk <= 0:
+            if chunks or not 0 < chunk <= MAX_CHUNK:
                 raise BitstreamError("attribute streams disagree on (or hold an invalid) chunk size")
         # k * Q is computed in float64 and stored as float32 (a deterministic cast)
         outs = {a.name: torch.zeros(n, a.dims, dtype=torch.float32) for a in self.attrs}
