@@ -12,6 +12,13 @@ Threads: the kernels use ``numba.set_num_threads(n)`` before every call, with ``
 cached on disk by numba (``cache=True``, in ``__pycache__`` next to the module or under
 ``NUMBA_CACHE_DIR``) and the wait is announced with one line on stderr.
 
+Cold and warm processes run the same machine code: a cold cache is filled by a child process,
+and this process then loads the kernels from the cache. (Compiled in-process, the fast-math
+tile kernels came out with a different summation order than the same kernels loaded from the
+cache: backward gradients differed by ~1e-7 relative, and a 1k-iteration training with a cold
+cache ended elsewhere than with a warm one.) Where the cache cannot be written the kernels are
+compiled in-process, with a warning.
+
 Threading layer: unless the user chose one (``NUMBA_THREADING_LAYER`` or
 ``numba.config.THREADING_LAYER``), numba's ``workqueue`` layer is selected before the first
 parallel launch (training starts numba's default instead: see :func:`configure_numba`).
@@ -99,6 +106,12 @@ def kernels():
         if cold:
             print(COMPILE_MESSAGE, file=sys.stderr, flush=True)
             log.info(COMPILE_MESSAGE)
+            if os.environ.get(_CHILD_ENV) != "1" and _compile_in_child():
+                cold = not all(_cache_is_warm(f) for f in fns)
+            if cold and os.environ.get(_CHILD_ENV) != "1":
+                print("warning: the numba cache cannot be written: CPU rasterizer kernels "
+                      "compiled in this process (results may differ from a cached run's in "
+                      "the last float bits)", file=sys.stderr, flush=True)
         t0 = time.perf_counter()
         _warmup(K)
         dt = time.perf_counter() - t0
@@ -109,6 +122,27 @@ def kernels():
                   file=sys.stderr, flush=True)
         _K = K
         return _K
+
+
+_CHILD_ENV = "PGS_NUMBA_COMPILE_CHILD"
+
+
+def _compile_in_child() -> bool:
+    """Compile the kernels into numba's disk cache in a child process (same interpreter,
+    environment and cache location). True when the child succeeded."""
+    import subprocess
+
+    env = dict(os.environ, **{_CHILD_ENV: "1"})
+    code = "from baseline.render.cpu import kernels; kernels()"
+    try:
+        r = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True,
+                           text=True, timeout=1800)
+    except (OSError, subprocess.SubprocessError) as e:
+        log.warning("compiling the CPU kernels in a child process failed: %s", e)
+        return False
+    if r.returncode != 0:
+        log.warning("compiling the CPU kernels in a child process failed: %s", r.stderr[-2000:])
+    return r.returncode == 0
 
 
 _NUMBA_STARTED = False
