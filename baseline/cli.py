@@ -124,7 +124,7 @@ def cmd_render(args) -> int:
 
 def cmd_encode(args) -> int:
     from baseline.codec.model_codec import encode_model, file_info, format_info, format_rate_check, rate_check
-    from baseline.run import load_run, write_json_atomic
+    from baseline.run import file_header, load_run, write_json_atomic
 
     trainer, scene = load_run(args.run, device="cpu")       # the codec runs on the CPU
     if trainer.phase != "adaptive":
@@ -140,7 +140,7 @@ def cmd_encode(args) -> int:
 
         cfg = dataclasses.replace(cfg, codec=dataclasses.replace(cfg.codec, **codec_over))
     st = encode_model(cfg, trainer.model, trainer.entropy, args.output,
-                      extra_header={"scene": scene_path})
+                      extra_header=file_header(scene, scene_path))
     print(format_info(file_info(args.output)))
     print(f"wrote {args.output}: {st['bytes']} bytes ({st['bytes'] / 2**20:.4f} MB), "
           f"{st['anchors']} anchors, encode {st['encode_s']:.2f} s")
@@ -161,28 +161,47 @@ def cmd_decode(args) -> int:
     from baseline.eval.export import export_run_ply
     from baseline.run import Renderable, write_json_atomic
 
+    import shutil
+
+    import torch
+
     out = Path(args.output or Path(args.file).with_suffix(""))
-    out.mkdir(parents=True, exist_ok=True)
-    dec = decode_model(args.file)
+    dec = decode_model(args.file)          # nothing is written unless the file decodes
     print(f"decoded {args.file}: {dec.model.n_anchors} anchors in {dec.decode_s:.2f} s")
     res = {"file": str(args.file), "bytes": Path(args.file).stat().st_size, "decode_s": dec.decode_s,
            "anchors": dec.model.n_anchors}
-    if args.render != "none":
-        r = Renderable(args.file, args.scene, device=args.device)
-        res[args.render] = r.evaluate(args.render, render_dir=out / "renders" / args.render)
-        t = res[args.render]
-        print(f"{args.render}: PSNR {t['psnr']:.3f} dB  SSIM {t['ssim']:.4f}  FPS {t['fps']:.1f}")
-        prov = feature_cache(r.model)
-        if prov is not None:                 # Predict-GS: FPS without the decoded-model f_c cache
-            prov.clear_cache()
-            r.model.unbake()                 # (a bake holds f_c's first-layer terms)
-            nc = r.evaluate(args.render)
-            prov.build_cache(r.model.xyz)
-            r.model.bake_if_faster()
-            t["fps_no_cache"] = nc["fps"]
-            print(f"FPS without the f_c cache {nc['fps']:.1f} (with {t['fps']:.1f})")
-        export_run_ply(r.model, r.scene.train_cameras, out / "point_cloud.ply")
-    write_json_atomic(out / "results.json", res)
+    created = not out.exists()
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        center = dec.header.get("view_center")
+        r = None
+        if args.render != "none" or center is None:
+            r = Renderable(args.file, args.scene, device=args.device, decoded=dec)
+        if args.render != "none":
+            res[args.render] = r.evaluate(args.render, render_dir=out / "renders" / args.render)
+            t = res[args.render]
+            print(f"{args.render}: PSNR {t['psnr']:.3f} dB  SSIM {t['ssim']:.4f}  FPS {t['fps']:.1f}")
+            prov = feature_cache(r.model)
+            if prov is not None:             # Predict-GS: FPS without the decoded-model f_c cache
+                prov.clear_cache()
+                r.model.unbake()             # (a bake holds f_c's first-layer terms)
+                nc = r.evaluate(args.render)
+                prov.build_cache(r.model.xyz)
+                r.model.bake_if_faster()
+                t["fps_no_cache"] = nc["fps"]
+                print(f"FPS without the f_c cache {nc['fps']:.1f} (with {t['fps']:.1f})")
+        model = r.model if r is not None else dec.model
+        model.to("cpu")
+        ply = out / "point_cloud.ply"
+        n = export_run_ply(model, r.scene.train_cameras if r is not None else None, ply,
+                           center=None if center is None else torch.tensor(center))
+        res["ply"] = {"path": str(ply), "gaussians": n}
+        print(f"wrote {n} Gaussians to {ply}")
+        write_json_atomic(out / "results.json", res)
+    except BaseException:
+        if created:                          # a failed decode leaves nothing behind
+            shutil.rmtree(out, ignore_errors=True)
+        raise
     return 0
 
 
@@ -360,7 +379,8 @@ def main(argv=None) -> int:
                    help="print the training loss's bit estimate beside the bytes written, per section")
     p.set_defaults(fn=cmd_encode)
 
-    p = sub.add_parser("decode", help="decode a .pgs file (PLY export, optional renders + metrics)")
+    p = sub.add_parser("decode", help="decode a .pgs file: OUT/point_cloud.ply (3DGS PLY) and "
+                       "OUT/results.json; with --render also renders + metrics")
     p.add_argument("file")
     p.add_argument("-o", "--output", default=None)
     p.add_argument("--render", choices=["test", "train", "none"], default="none")
@@ -452,9 +472,27 @@ def main(argv=None) -> int:
     try:
         registry.ensure_loaded()
         return args.fn(args)
-    except (ValueError, FileNotFoundError, KeyError, OSError) as e:
-        print(f"pgs {args.cmd}: error: {e}", file=sys.stderr)
+    except KeyboardInterrupt as e:     # TrainingStopped says where its checkpoint is
+        print(f"pgs {args.cmd}: interrupted" + (f": {e}; run it again with --resume to continue"
+                                               if str(e) else ""), file=sys.stderr)
+        return 130
+    except KeyError as e:          # a missing key: its name, not its repr
+        print(f"pgs {args.cmd}: error: missing {e.args[0] if e.args else e}", file=sys.stderr)
         return 2
+    except (ValueError, FileNotFoundError, OSError) as e:
+        print(f"pgs {args.cmd}: error: {_one_line(e)}", file=sys.stderr)
+        return 2
+    except MemoryError:
+        print(f"pgs {args.cmd}: error: out of memory", file=sys.stderr)
+        return 2
+    except Exception as e:  # noqa: BLE001 - never a traceback to a user; say it is a bug
+        print(f"pgs {args.cmd}: internal error ({type(e).__name__}: {_one_line(e)}); please "
+              f"report it with the command that caused it", file=sys.stderr)
+        return 2
+
+
+def _one_line(e: BaseException) -> str:
+    return " ".join(str(e).split())
 
 
 if __name__ == "__main__":

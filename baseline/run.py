@@ -96,6 +96,16 @@ def train_run(scene_path: str, out: str | Path, cfg: Config, resume: bool = Fals
     return results
 
 
+def file_header(scene, scene_path: str) -> dict:
+    """What a ``.pgs`` file records of its scene: the path (for ``--render``) and the export
+    viewpoint (the mean training-camera centre: ``pgs decode`` writes the PLY without the
+    scene)."""
+    from baseline.eval.export import view_center
+
+    return {"scene": str(scene_path),
+            "view_center": [float(x) for x in view_center(scene.train_cameras)]}
+
+
 def coded_state(trainer: Trainer):
     """The anchors as the codec stores them (:class:`baseline.pipeline.CodedState`) in the
     adaptive phase, else None."""
@@ -137,9 +147,10 @@ class Renderable:
     """Anything `pgs eval` / `pgs render` can draw: a run folder or a decoded ``.pgs`` file."""
 
     def __init__(self, target: str | Path, scene_override: Optional[str] = None,
-                 device: str | None = None):
+                 device: str | None = None, decoded=None):
         """``device``: where to render (None: the config's ``train.device``). A ``.pgs`` file is
-        decoded on the CPU, then moved."""
+        decoded on the CPU, then moved (``decoded``: its :class:`DecodedModel` when the caller
+        decoded it already)."""
         from baseline.device import resolve_device
 
         target = Path(target)
@@ -149,7 +160,7 @@ class Renderable:
         if target.is_file():
             from baseline.codec.model_codec import decode_model
 
-            dec = decode_model(target)
+            dec = decoded if decoded is not None else decode_model(target)
             self.decoded = dec
             self.cfg, self.model, self.phase = dec.cfg, dec.model, "decoded"
             self.model.to(resolve_device(device or self.cfg.train.device))
@@ -157,6 +168,9 @@ class Renderable:
             scene_path = scene_override or dec.header.get("scene")
             if not scene_path:
                 raise ValueError(f"{target} does not record its scene; pass --scene PATH")
+            if not Path(scene_path).exists():
+                raise FileNotFoundError(f"{target} was written for the scene {scene_path}, "
+                                        f"which is not here; pass --scene PATH")
         else:
             if not (target / "config.toml").exists():
                 raise FileNotFoundError(f"{target} is neither a .pgs file nor a run folder")

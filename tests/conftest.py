@@ -11,6 +11,21 @@ from baseline.data.synthetic import make_scene
 from baseline.train.trainer import Trainer
 
 
+def demo_cfg(iters: int, *sets: str, patches=()):
+    """The demo preset at ``iters`` iterations, one thread, no log lines (tests' training)."""
+    return build_config(["demo", *patches], [f"train.iterations={iters}", "train.threads=1",
+                                             "train.log_every=1000", *sets])
+
+
+@pytest.fixture(scope="session")
+def small_scene(tmp_path_factory):
+    """A small synthetic COLMAP scene (10 views, 48x36), shared by the whole session: tests
+    must not write into it."""
+    d = tmp_path_factory.mktemp("small_scene")
+    make_scene(d / "scene", n_views=10, width=48, height=36, seed=5)
+    return d / "scene"
+
+
 @pytest.fixture(scope="session")
 def decoded_files(tmp_path_factory):
     """A baseline and a Predict-GS ``model.pgs`` of the same small scene (short trainings, the

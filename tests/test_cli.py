@@ -48,8 +48,10 @@ def test_eval_encode_info_decode_render_export(trained, capsys):
     for section in ("positions", "feat", "scaling", "offsets"):
         assert section in info
     dec = d / "dec"
-    assert main(["decode", str(pgs), "-o", str(dec)]) == 0
-    assert any(dec.iterdir())
+    assert main(["decode", str(pgs), "-o", str(dec)]) == 0       # no --render: the PLY
+    res = json.loads((dec / "results.json").read_text())
+    assert res["ply"]["gaussians"] > 0 and (dec / "point_cloud.ply").exists()
+    assert not (dec / "renders").exists()
     assert main(["eval", str(pgs)]) == 0
     renders = d / "renders"
     assert main(["render", str(pgs), "-o", str(renders)]) == 0
@@ -58,6 +60,44 @@ def test_eval_encode_info_decode_render_export(trained, capsys):
     assert main(["export-ply", str(run), "-o", str(ply)]) == 0
     head = ply.read_bytes()[:400]
     assert head.startswith(b"ply") and b"element vertex" in head
+    # the run's export (its coded state) and the decoded file's are the same Gaussians, from
+    # the same recorded viewpoint, byte for byte
+    assert ply.read_bytes() == (dec / "point_cloud.ply").read_bytes()
+
+
+def test_decoded_ply_is_byte_identical_across_thread_counts(trained, tmp_path):
+    import os
+    import subprocess
+    import sys
+
+    d, _, run = trained
+    pgs = tmp_path / "t.pgs"
+    assert main(["encode", str(run), "-o", str(pgs)]) == 0
+    plys = []
+    for n in ("1", "2"):
+        out = tmp_path / f"dec{n}"
+        env = dict(os.environ, OMP_NUM_THREADS=n, NUMBA_NUM_THREADS=n)
+        r = subprocess.run([sys.executable, "-m", "baseline.cli", "decode", str(pgs), "-o",
+                            str(out)], env=env, capture_output=True, text=True)
+        assert r.returncode == 0, r.stderr
+        plys.append((out / "point_cloud.ply").read_bytes())
+    assert plys[0] == plys[1]
+
+
+def test_a_failed_decode_leaves_nothing(trained, tmp_path, capsys):
+    d, _, run = trained
+    bad = tmp_path / "bad.pgs"
+    good = d / "m.pgs"
+    if not good.exists():
+        assert main(["encode", str(run), "-o", str(good)]) == 0
+    raw = bytearray(good.read_bytes())
+    raw[-10] ^= 0xFF                                       # a payload byte: its CRC fails
+    bad.write_bytes(bytes(raw))
+    out = tmp_path / "never"
+    assert main(["decode", str(bad), "-o", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "bad.pgs" in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
+    assert not out.exists()
 
 
 def test_bad_input_gives_a_named_error(trained, tmp_path, capsys):
@@ -88,6 +128,21 @@ def test_encode_with_float16_weights(trained, capsys):
     assert i16["total_bytes"] < i32["total_bytes"]
     assert decode_model(f16).header["weight_dtype"] == "float16"
     assert main(["eval", str(f16)]) == 0
+    # exact decoding at float16: the values the encoder coded are the decoded ones, bit for bit
+    import dataclasses
+
+    import torch
+
+    from baseline.codec.model_codec import encode_model
+    from baseline.run import load_run
+    t, _ = load_run(run, device="cpu")
+    cfg = dataclasses.replace(t.cfg, codec=dataclasses.replace(t.cfg.codec, weight_dtype="float16"))
+    st = encode_model(cfg, t.model, t.entropy, d / "w16b.pgs")
+    dec = decode_model(d / "w16b.pgs")
+    for k, v in st["values"].items():
+        assert torch.equal(v, dec.model.fixed_values[k]), k
+    for name, p in t.model.decoder.state_dict().items():
+        assert torch.equal(p, dec.model.decoder.state_dict()[name]), name
 
 
 def test_bench_codec_with_a_trained_run(trained, capsys):

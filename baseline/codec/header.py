@@ -6,8 +6,9 @@ every CRC). :func:`check_header` refuses, with one :class:`BitstreamError` namin
 * every field of the wrong type, out of its range or above a hard cap (anchor count, Gaussians
   per anchor, attribute dims, grid layouts, network widths, coding options);
 * a file whose sections do not belong to it: the header lists every section with a keyed digest
-  (BLAKE2b-64 of the payload, keyed by the file's own id), so a section copied from another
-  file (its own CRC valid), a removed section or an added one is named;
+  (BLAKE2b-64 of the payload, keyed by the file's own id, itself a digest of the whole file's
+  content), so a section copied from another file (its own CRC valid), a removed section or
+  an added one is named;
 * a decode whose planned allocation (computed from the checked header: anchors x the bytes each
   needs, hash-grid tables, networks bounded by their sections) exceeds the budget
   (:func:`memory_budget`: 128 x the file size + 256 MiB, or ``PGS_DECODE_MEMORY_MB``).
@@ -20,7 +21,6 @@ from __future__ import annotations
 import hashlib
 import math
 import os
-import secrets
 from dataclasses import dataclass
 from typing import Any, Optional
 
@@ -45,9 +45,18 @@ GRID_CODINGS = ("all", "used")
 WEIGHT_DTYPES = ("float32", "float16")
 
 
-def new_file_id() -> str:
-    """A fresh random id (hex) that keys a file's section digests."""
-    return secrets.token_hex(8)
+def file_id_of(header: dict, sections) -> str:
+    """The id that keys a file's section digests: BLAKE2b-64 over the rest of its header and
+    every section (so one model always encodes to the same bytes, and two files' ids differ
+    whenever anything in them does)."""
+    import json
+
+    h = hashlib.blake2b(digest_size=DIGEST_BYTES)
+    h.update(json.dumps(header, sort_keys=True, separators=(",", ":")).encode("utf-8"))
+    for name, payload in sections:
+        h.update(name.encode("utf-8") + b"\0" + len(payload).to_bytes(8, "little"))
+        h.update(bytes(payload))
+    return h.hexdigest()
 
 
 def section_digest(file_id: str, payload: bytes) -> str:
@@ -56,10 +65,11 @@ def section_digest(file_id: str, payload: bytes) -> str:
                            key=bytes.fromhex(file_id)).hexdigest()
 
 
-def digest_sections(sections) -> dict:
+def digest_sections(header: dict, sections) -> dict:
     """Header fields binding ``[(name, payload)]`` to one file: ``file_version``, ``file_id``,
     ``section_digests``."""
-    fid = new_file_id()
+    sections = list(sections)
+    fid = file_id_of(header, sections)
     return {"file_version": FILE_VERSION, "file_id": fid,
             "section_digests": {n: section_digest(fid, p) for n, p in sections}}
 
@@ -225,6 +235,12 @@ def check_header(header: dict, sections: dict, file_size: int,
     gc = _str(header.get("grid_coding", "all"), "grid_coding", GRID_CODINGS)
     if "scene" in header and header["scene"] is not None:
         _str(header["scene"], "scene")
+    if "view_center" in header:
+        vc = _list(header["view_center"], "view_center", 3)
+        if len(vc) != 3:
+            raise _err("view_center", "expected [x, y, z]")
+        for x in vc:
+            _num(x, "view_center", -3e38, 3e38)
     _dict(header.get("config"), "config")
     for sec in ("positions", "masks"):
         if sec not in sections:

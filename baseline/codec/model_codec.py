@@ -194,7 +194,7 @@ def encode_model(cfg, model, entropy, path: str | Path, extra_header: Optional[d
         header["grid_coding"] = grid_coding
     if extra_header:
         header.update(extra_header)
-    header.update(digest_sections(sections))      # binds every section to this file
+    header.update(digest_sections(header, sections))      # binds every section to this file
     size = write_container(path, header, sections)
     return {"bytes": size, "anchors": N, "encode_s": time.perf_counter() - t0,
             "sections": {n: len(b) for n, b in sections}, "values": vq, "xyz_q": xyz_q,

@@ -337,16 +337,16 @@ def _stage_encode(spec: RunSpec, scene_path: str, record: dict,
                   codec: Optional[dict] = None) -> None:
     from baseline.codec.model_codec import encode_model, file_info
     from baseline.config import CodecConfig
-    from baseline.run import load_run
+    from baseline.run import file_header, load_run
 
-    trainer, _ = load_run(spec.dir, device="cpu")     # the codec runs on the CPU
+    trainer, scene = load_run(spec.dir, device="cpu")     # the codec runs on the CPU
     if trainer.phase != "adaptive":
         tqdm.write(f"note: {spec.label} stopped before the entropy model was trained "
                    f"(phase '{trainer.phase}'); its file is coded with an untrained context model")
     settings = run_codec(spec, codec)
     cfg = dataclasses.replace(trainer.cfg, codec=CodecConfig(**settings))
     st = encode_model(cfg, trainer.model, trainer.entropy, spec.dir / MODEL_FILE,
-                      extra_header={"scene": scene_path})
+                      extra_header=file_header(scene, scene_path))
     info = file_info(spec.dir / MODEL_FILE)
     record["encode"] = {"bytes": st["bytes"], "encode_s": st["encode_s"], "anchors": st["anchors"],
                         "phase": trainer.phase, "sections": info["sections"],

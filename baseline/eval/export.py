@@ -82,6 +82,9 @@ def export_run_ply(model, train_cameras, path, values: dict | None = None, coded
     """Write ``model``'s neural Gaussians seen from ``center`` (default :func:`view_center` of
     ``train_cameras``) as a 3DGS PLY; returns the Gaussian count."""
     if center is None:
+        if not train_cameras:
+            raise ValueError("no export viewpoint: the file records none and no scene is given "
+                             "(pass --scene PATH)")
         center = view_center(train_cameras)
     g = gaussians_at_view(model, center.to(model.xyz.device), values, coded)
     return write_ply(path, g.means, g.quats, g.scales, g.opacities, g.colors)

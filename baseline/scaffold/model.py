@@ -191,6 +191,8 @@ class AnchorModel(nn.Module):
         logits = self.per_anchor["mask"] if idx is None else self.per_anchor["mask"][idx]
         s = torch.sigmoid(logits[..., 0])
         hard = (s > self.mask_threshold).float()
+        if not torch.is_grad_enabled():   # exactly 0/1 (hard + s - s may be 1 -+ an ulp)
+            return hard
         return hard + s - s.detach()
 
     def anchor_valid(self) -> torch.Tensor:

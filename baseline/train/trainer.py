@@ -11,8 +11,11 @@ Hooks steer the trainer through ``trainer.phase`` (quantization phase), ``traine
 from __future__ import annotations
 
 import json
+import math
 import os
 import random
+import signal
+import threading
 import time
 from pathlib import Path
 from typing import Optional
@@ -31,6 +34,20 @@ from baseline.train.losses import lr_exp, rate_term, reconstruction_loss
 
 CHECKPOINT_NAME = "checkpoint.pt"
 TRAIN_LOG_NAME = "train_log.jsonl"
+
+
+class NonFiniteError(ValueError):
+    """Training reached (or a checkpoint holds) NaN or Inf: nothing is written over the last
+    good checkpoint."""
+
+
+class TrainingStopped(KeyboardInterrupt):
+    """SIGINT / SIGTERM during training: the step in flight finished and a checkpoint of it
+    was written; ``--resume`` (or the same ``pgs compare``) continues from there."""
+
+    def __init__(self, iteration: int, path):
+        super().__init__(f"stopped at iteration {iteration}; checkpoint written to {path}")
+        self.iteration, self.path = iteration, path
 
 
 def available_cores() -> int:
@@ -108,6 +125,8 @@ class Trainer:
         self.render_scale = 1.0
         self.extra_losses: dict = {}
         self.iteration = 0
+        self._last_saved: Optional[int] = None
+        self._ema_loss: Optional[float] = None
         self.train_time = 0.0
         self._view_order: list[int] = []
         self.optimizer = self._make_optimizer()
@@ -241,23 +260,42 @@ class Trainer:
         return terms
 
     def train(self, until: Optional[int] = None, checkpoint_every: Optional[int] = None) -> dict:
+        """Train to ``until`` (default: the configured iterations), checkpointing every
+        ``train.checkpoint_every`` (paper scale) and at the end.
+
+        SIGINT / SIGTERM (in the main thread) finish the step in flight, write a checkpoint and
+        raise :class:`TrainingStopped`; a second signal interrupts at once (the last checkpoint
+        stays). A non-finite loss raises :class:`NonFiniteError` and writes nothing.
+        """
         cfg = self.cfg
         total = cfg.train.iterations if until is None else min(until, cfg.train.iterations)
         ck = cfg.train.at(cfg.train.checkpoint_every) if checkpoint_every is None else checkpoint_every
         self.out.mkdir(parents=True, exist_ok=True)
+        remove_stale_temps(self.out)
         write_text_atomic(self.out / "config.toml", to_toml(cfg))
+        with _StopSignals() as stop:
+            return self._train_loop(total, ck, stop)
+
+    def _train_loop(self, total: int, ck: int, stop) -> dict:
+        cfg = self.cfg
         with tqdm(total=total, initial=self.iteration, desc="train", disable=not self.progress,
                   dynamic_ncols=True) as bar, self._open_log() as log:
             last = {}
-            ema_loss = None
+            ema_loss = self._ema_loss            # carried over a resume: the log is one curve
             while self.iteration < total:
                 it = self.iteration + 1
                 t0 = time.perf_counter()
                 terms = self.step(it)
                 self.train_time += time.perf_counter() - t0
+                if not math.isfinite(terms["loss"]):
+                    raise NonFiniteError(
+                        f"{self.out}: the loss is {terms['loss']} at iteration {it}; training "
+                        f"stopped, the last checkpoint (iteration "
+                        f"{self._last_saved if self._last_saved is not None else 'none'}) is kept")
                 self.iteration = it
                 ema_loss = (terms["loss"] if ema_loss is None
                             else 0.9 * ema_loss + 0.1 * terms["loss"])
+                self._ema_loss = ema_loss
                 last = terms
                 if it % cfg.train.log_every == 0 or it == total:
                     post = {"loss": f"{ema_loss:.4f}", "psnr": f"{terms['psnr']:.2f}",
@@ -272,6 +310,10 @@ class Trainer:
                                          default=float) + "\n")
                     log.flush()
                 bar.update(1)
+                if stop.requested and it < total:
+                    path = self.save_checkpoint()
+                    log.flush()
+                    raise TrainingStopped(it, path)
                 if ck and it % ck == 0 and it < total:
                     self.save_checkpoint()
         self.save_checkpoint()
@@ -299,6 +341,7 @@ class Trainer:
         return {
             "iteration": self.iteration,
             "train_time": self.train_time,
+            "loss_ema": self._ema_loss,
             "shapes": {k: tuple(v.shape) for k, v in self.model.per_anchor.items()},
             "model": self.model.state_dict(),
             "entropy": self.entropy.state_dict(),
@@ -315,9 +358,20 @@ class Trainer:
         }
 
     def save_checkpoint(self, path: Optional[Path] = None) -> Path:
+        """Write the training state atomically; refused (:class:`NonFiniteError`, the previous
+        file untouched) when any tensor of the model, entropy model or optimizer state holds
+        NaN or Inf."""
         path = Path(path) if path else self.out / CHECKPOINT_NAME
+        state = self.state_dict()
+        try:
+            check_finite(state["model"], path, "model")
+            check_finite(state["entropy"], path, "entropy model")
+            check_optimizer_finite(state["optimizer"], path)
+        except ValueError as e:
+            raise NonFiniteError(f"not writing {path}: {e.args[0]}") from None
         with atomic_path(path) as tmp:
-            torch.save(self.state_dict(), tmp)
+            torch.save(state, tmp)
+        self._last_saved = self.iteration
         return path
 
     def load_checkpoint(self, path: str | Path) -> None:
@@ -333,6 +387,8 @@ class Trainer:
                 torch.zeros(shape, device=self.device),
                 requires_grad=self.model.per_anchor[k].requires_grad)
         check_finite(s["model"], path)
+        check_finite(s["entropy"], path, "entropy model")
+        check_optimizer_finite(s["optimizer"], path)
         self.model.load_state_dict(s["model"])
         self.entropy.load_state_dict(s["entropy"])
         self.optimizer = self._make_optimizer()
@@ -344,6 +400,8 @@ class Trainer:
             if st is not None and hasattr(h, "load_state_dict"):
                 h.load_state_dict(st)
         self.iteration = s["iteration"]
+        self._last_saved = self.iteration
+        self._ema_loss = s.get("loss_ema")     # checkpoints written before it was kept: None
         self.train_time = s["train_time"]
         self.phase = s["phase"]
         self.render_scale = s["render_scale"]
@@ -363,8 +421,71 @@ class Trainer:
         random.setstate(s["rng"]["python"])
 
 
-def check_finite(state: dict, path) -> None:
+def check_finite(state: dict, path, what: str = "model") -> None:
     """Refuse a checkpoint with NaN/Inf values, naming the tensor."""
     for k, v in state.items():
         if torch.is_tensor(v) and v.is_floating_point() and not torch.isfinite(v).all():
-            raise ValueError(f"checkpoint {path}: tensor '{k}' contains NaN or Inf values")
+            raise ValueError(f"checkpoint {path}: {what} tensor '{k}' contains NaN or Inf values")
+
+
+def check_optimizer_finite(opt_state: dict, path) -> None:
+    """Refuse an optimizer state (Adam moments, steps) with NaN/Inf values, naming the group."""
+    names = {}
+    for g in opt_state.get("param_groups", []):
+        for pid in g.get("params", []):
+            names[pid] = g.get("name", "?")
+    for pid, st in opt_state.get("state", {}).items():
+        for k, v in st.items():
+            if torch.is_tensor(v) and v.is_floating_point() and not torch.isfinite(v).all():
+                raise ValueError(f"checkpoint {path}: optimizer state '{k}' of parameter group "
+                                 f"'{names.get(pid, pid)}' contains NaN or Inf values")
+
+
+def remove_stale_temps(folder: Path) -> list:
+    """Remove temporary files a killed writer left in ``folder`` (``.<stem>.<hex>.tmp<ext>``,
+    :func:`baseline.fileio.atomic_path`); returns their names."""
+    import re
+
+    gone = []
+    for p in Path(folder).glob(".*.tmp*"):
+        if re.fullmatch(r"\..+\.[0-9a-f]{8}\.tmp(\.[^.]+)?", p.name) and p.is_file():
+            try:
+                p.unlink()
+                gone.append(p.name)
+            except OSError:
+                pass
+    return gone
+
+
+class _StopSignals:
+    """SIGINT / SIGTERM set :attr:`requested` (the loop then checkpoints and stops); a second
+    one interrupts at once. Handlers are only installed in the main thread and restored on
+    exit."""
+
+    SIGNALS = ("SIGINT", "SIGTERM")
+
+    def __init__(self):
+        self.requested = False
+        self._old = {}
+
+    def _handler(self, signum, frame):
+        if self.requested:
+            raise KeyboardInterrupt
+        self.requested = True
+        import sys
+
+        print(f"\n{signal.Signals(signum).name}: stopping after this iteration (a checkpoint is "
+              f"written; send it again to stop at once)", file=sys.stderr, flush=True)
+
+    def __enter__(self):
+        if threading.current_thread() is threading.main_thread():
+            for name in self.SIGNALS:
+                sig = getattr(signal, name, None)
+                if sig is not None:
+                    self._old[sig] = signal.signal(sig, self._handler)
+        return self
+
+    def __exit__(self, *exc):
+        for sig, old in self._old.items():
+            signal.signal(sig, old)
+        return False
