@@ -158,3 +158,33 @@ def test_position_coding_is_validated():
 def test_decoder_quant_is_validated():
     with pytest.raises(ConfigError, match="decoder_quant"):
         build_config([], ["entropy.decoder_quant=round"])
+
+
+@pytest.mark.parametrize("expr,key", [
+    ("train.log_every=0", "train.log_every"), ("train.schedule_base=0", "train.schedule_base"),
+    ("entropy.mask_threshold=2", "entropy.mask_threshold"), ("entropy.lmbda=nan", "entropy.lmbda"),
+    ("entropy.lmbda=-1", "entropy.lmbda"), ("entropy.lmbda=inf", "entropy.lmbda"),
+    ("model.n_offsets=100000", "model.n_offsets"), ("model.n_offsets=0", "model.n_offsets"),
+    ("entropy.context_hidden=1000000", "entropy.context_hidden"),
+    ("entropy.grid.log2_table_3d=30", "entropy.grid.log2_table_3d"),
+    ("entropy.grid.resolutions_3d=[1]", "entropy.grid.resolutions_3d"),
+    ("entropy.grid.n_features=0", "entropy.grid.n_features"),
+    ("predict.residual_dim=100000", "predict.residual_dim"), ("predict.d_s=0", "predict.d_s"),
+    ("lr.feature=-0.1", "lr.feature"), ("train.lambda_dssim=2", "train.lambda_dssim"),
+    ("data.near=0", "data.near"), ("train.iterations=0", "train.iterations"),
+    ("entropy.rate_sample=0", "entropy.rate_sample"),
+])
+def test_out_of_range_values_are_refused_by_name(expr, key):
+    with pytest.raises(ConfigError, match=key.replace(".", r"\.")):
+        build_config(["predict-gs"], [expr])
+
+
+def test_iterations_flag_and_set_agree(tmp_path, capsys):
+    from baseline.cli import main
+
+    assert main(["config", "--iterations", "0"]) == 2
+    assert "train.iterations" in capsys.readouterr().err
+    assert main(["config", "--set", "train.iterations=0"]) == 2
+    assert "train.iterations" in capsys.readouterr().err
+    assert main(["config", "--iterations", "123"]) == 0
+    assert "iterations = 123" in capsys.readouterr().out

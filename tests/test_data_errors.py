@@ -172,3 +172,46 @@ def test_blender_errors(tmp_path):
     with pytest.raises(SceneError, match="COLMAP scenes only"):
         load(d, tmp_path, images="images_8")
     assert len(load(d, tmp_path).train_cameras) == 1         # the valid one loads
+
+
+MALFORMED = [
+    ("top-level list", lambda m: [m], "top level must be an object"),
+    ("camera_angle_x null", lambda m: {**m, "camera_angle_x": None}, "'camera_angle_x' must be"),
+    ("camera_angle_x 0", lambda m: {**m, "camera_angle_x": 0}, "'camera_angle_x' = 0.0 is out"),
+    ("camera_angle_x string", lambda m: {**m, "camera_angle_x": "wide"}, "'camera_angle_x'"),
+    ("camera_model null", lambda m: {**m, "camera_model": None}, None),      # = absent: loads
+    ("camera_model int", lambda m: {**m, "camera_model": 3}, "'camera_model' must be a string"),
+    ("fl_x negative", lambda m: {**m, "fl_x": -5.0}, "'fl_x'"),
+    ("w zero", lambda m: {**m, "fl_x": 5.0, "w": 0}, "'w'"),
+    ("k1 NaN", lambda m: {**m, "k1": float("nan")}, "'k1'"),
+    ("frame not an object", lambda m: {**m, "frames": [3]}, "frame 0"),
+    ("file_path null", lambda m: {**m, "frames": [{**m["frames"][0], "file_path": None}]},
+     "frame 0: 'file_path'"),
+    ("matrix NaN", lambda m: {**m, "frames": [{**m["frames"][0], "transform_matrix":
+                                              [[float("nan")] * 4] * 4}]}, "frame 0: .*NaN"),
+    ("matrix Inf", lambda m: {**m, "frames": [{**m["frames"][0], "transform_matrix":
+                                              [[1, 0, 0, float("inf")], [0, 1, 0, 0],
+                                               [0, 0, 1, 0], [0, 0, 0, 1]]}]}, "NaN or Inf"),
+    ("matrix ragged", lambda m: {**m, "frames": [{**m["frames"][0], "transform_matrix":
+                                                 [[1, 0], [0, 1, 0, 0]]}]}, "transform_matrix"),
+    ("matrix singular", lambda m: {**m, "frames": [{**m["frames"][0], "transform_matrix":
+                                                    np.zeros((4, 4)).tolist()}]}, "singular"),
+    ("matrix 2x4", lambda m: {**m, "frames": [{**m["frames"][0], "transform_matrix":
+                                               np.eye(4)[:2].tolist()}]}, "3x4 or 4x4"),
+]
+
+
+@pytest.mark.filterwarnings("ignore:all training cameras share one centre")
+@pytest.mark.parametrize("name,edit,error", MALFORMED, ids=[m[0] for m in MALFORMED])
+def test_malformed_transforms_give_a_named_error(tmp_path, name, edit, error):
+    """Every malformed transforms.json is one SceneError naming the file (and the frame and key
+    where there is one), never another exception; NaN allowed into JSON by Python's encoder."""
+    d = _blender(tmp_path / "m")
+    js = d / "transforms_train.json"
+    js.write_text(json.dumps(edit(json.loads(js.read_text()))))
+    if error is None:
+        assert len(load(d, tmp_path).train_cameras) == 1
+        return
+    with pytest.raises(SceneError, match=error) as e:
+        load(d, tmp_path)
+    assert "transforms_train.json" in str(e.value)

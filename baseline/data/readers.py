@@ -187,6 +187,10 @@ def read_colmap(path: Path, images: str | None, resolution: int) -> ReaderResult
         if im.camera_id not in sources:
             src = SourceCamera.from_pycolmap(rec.cameras[im.camera_id], camera_id=im.camera_id)
             check_supported(src, str(files["cameras"]))
+            if (not all(math.isfinite(x) for x in src.params) or src.width <= 0
+                    or src.height <= 0 or src.params[0] <= 0):
+                raise SceneError(f"{files['cameras']}: camera {im.camera_id}: invalid "
+                                 f"intrinsics {src.width}x{src.height} {list(src.params)}")
             sources[im.camera_id] = src
     names = [im.name for im in imgs]
     paths, mapping = _resolve_image_files(folder, names, files["images"])
@@ -195,6 +199,8 @@ def read_colmap(path: Path, images: str | None, resolution: int) -> ReaderResult
     for im, p in zip(imgs, paths):
         w2c = np.eye(4)
         w2c[:3, :4] = np.asarray(im.cam_from_world().matrix(), dtype=np.float64)
+        if not np.isfinite(w2c).all():
+            raise SceneError(f"{files['images']}: image {im.name}: its pose holds NaN or Inf")
         views.append(ViewRecord(name=im.name, path=p, source=sources[im.camera_id], w2c=w2c))
 
     pts = rec.points3D
@@ -208,6 +214,13 @@ def read_colmap(path: Path, images: str | None, resolution: int) -> ReaderResult
     for k, p in enumerate(pts.values()):
         xyz[k] = p.xyz
         rgb[k] = p.color
+    finite = np.isfinite(xyz).all(axis=1)
+    if not finite.all():
+        warnings.warn(f"{files['points3D']}: {int((~finite).sum())} points with NaN or Inf "
+                      f"coordinates skipped", stacklevel=2)
+        xyz, rgb = xyz[finite], rgb[finite]
+        if not len(xyz):
+            raise SceneError(f"{files['points3D']}: no point has finite coordinates")
     info = {"image_folder": folder.name, "folder_downscale": extra, "name_mapping": mapping,
             "model": str(model_dir)}
     return ReaderResult("colmap", views, xyz, rgb / 255.0, info)
@@ -231,32 +244,55 @@ def _frame_image(json_path: Path, file_path: str) -> Path:
                      f"given and with extensions {', '.join(IMAGE_EXTENSIONS)})")
 
 
-def _blender_camera(json_path: Path, meta: dict, size: tuple[int, int]) -> SourceCamera:
+def _number(meta: dict, key: str, where: str, lo: float = -math.inf, hi: float = math.inf,
+            default=None, open_lo: bool = False) -> float:
+    """``meta[key]`` as a finite float in [lo, hi] (``(lo, hi]`` with ``open_lo``), else a
+    :class:`SceneError` naming the key and where it is."""
+    v = meta.get(key, default)
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        raise SceneError(f"{where}: '{key}' must be a number, got {v!r:.60}")
+    v = float(v)
+    if not math.isfinite(v) or v < lo or v > hi or (open_lo and v == lo):
+        raise SceneError(f"{where}: '{key}' = {v} is out of range "
+                         f"{'(' if open_lo else '['}{lo}, {hi}]")
+    return v
+
+
+def _blender_camera(json_path: Path, meta: dict, size: tuple[int, int],
+                    where: str | None = None) -> SourceCamera:
     w, h = size
-    if meta.get("is_fisheye") or meta.get("camera_model", "").upper() not in ("", "OPENCV",
-                                                                               "PINHOLE"):
-        model = meta.get("camera_model") or "fisheye"
-        raise SceneError(f"{json_path}: camera model {model} is not supported (supported: "
-                         "pinhole with optional k1, k2, p1, p2 distortion)")
+    where = where or str(json_path)
+    model = meta.get("camera_model", "")
+    if model is None:
+        model = ""
+    if not isinstance(model, str):
+        raise SceneError(f"{where}: 'camera_model' must be a string, got {model!r:.60}")
+    if meta.get("is_fisheye") or model.upper() not in ("", "OPENCV", "PINHOLE"):
+        raise SceneError(f"{where}: camera model {model or 'fisheye'} is not supported "
+                         "(supported: pinhole with optional k1, k2, p1, p2 distortion)")
     if "fl_x" in meta:
-        W0, H0 = int(meta.get("w", w)), int(meta.get("h", h))
-        fx = float(meta["fl_x"])
-        fy = float(meta.get("fl_y", fx))
-        cx, cy = float(meta.get("cx", W0 / 2)), float(meta.get("cy", H0 / 2))
+        W0 = int(_number(meta, "w", where, 1, 1 << 20, default=w))
+        H0 = int(_number(meta, "h", where, 1, 1 << 20, default=h))
+        fx = _number(meta, "fl_x", where, 0, 1e9, open_lo=True)
+        fy = _number(meta, "fl_y", where, 0, 1e9, default=fx, open_lo=True)
+        cx = _number(meta, "cx", where, -1e9, 1e9, default=W0 / 2)
+        cy = _number(meta, "cy", where, -1e9, 1e9, default=H0 / 2)
     elif "camera_angle_x" in meta:
         W0, H0 = w, h
-        fx = 0.5 * W0 / math.tan(0.5 * float(meta["camera_angle_x"]))
-        fy = 0.5 * H0 / math.tan(0.5 * float(meta["camera_angle_y"])) \
-            if "camera_angle_y" in meta else fx
+        ax = _number(meta, "camera_angle_x", where, 0, math.pi - 1e-6, open_lo=True)
+        fx = 0.5 * W0 / math.tan(0.5 * ax)
+        fy = (0.5 * H0 / math.tan(0.5 * _number(meta, "camera_angle_y", where, 0,
+                                                math.pi - 1e-6, open_lo=True))
+              if "camera_angle_y" in meta else fx)
         cx, cy = W0 / 2, H0 / 2
     else:
-        raise SceneError(f"{json_path}: no intrinsics: expected camera_angle_x or fl_x (+ fl_y, "
+        raise SceneError(f"{where}: no intrinsics: expected camera_angle_x or fl_x (+ fl_y, "
                          "cx, cy, w, h)")
-    bad = [k for k in _UNSUPPORTED_DIST_KEYS if float(meta.get(k, 0.0)) != 0.0]
+    bad = [k for k in _UNSUPPORTED_DIST_KEYS if _number(meta, k, where, default=0.0) != 0.0]
     if bad:
-        raise SceneError(f"{json_path}: distortion terms {bad} are not supported (supported: "
+        raise SceneError(f"{where}: distortion terms {bad} are not supported (supported: "
                          "k1, k2, p1, p2); undistort the images first")
-    dist = [float(meta.get(k, 0.0)) for k in _DIST_KEYS]
+    dist = [_number(meta, k, where, -1e3, 1e3, default=0.0) for k in _DIST_KEYS]
     if any(dist):
         return SourceCamera("OPENCV", W0, H0, (fx, fy, cx, cy, *dist))
     return SourceCamera("PINHOLE", W0, H0, (fx, fy, cx, cy))
@@ -268,19 +304,36 @@ def _read_transforms(json_path: Path, split: str | None) -> list[ViewRecord]:
         meta = json.loads(json_path.read_text())
     except (OSError, ValueError) as e:
         raise SceneError(f"{json_path}: cannot parse: {e}") from e
+    if not isinstance(meta, dict):
+        raise SceneError(f"{json_path}: the top level must be an object with a 'frames' list, "
+                         f"got a {type(meta).__name__}")
     frames = meta.get("frames")
     if not isinstance(frames, list):
         raise SceneError(f"{json_path}: no 'frames' list")
     top = {k: v for k, v in meta.items() if k != "frames"}
     views = []
-    for fr in frames:
-        if "file_path" not in fr or "transform_matrix" not in fr:
-            raise SceneError(f"{json_path}: a frame lacks file_path or transform_matrix")
+    for i, fr in enumerate(frames):
+        where = f"{json_path}, frame {i}"
+        if not isinstance(fr, dict) or "file_path" not in fr or "transform_matrix" not in fr:
+            raise SceneError(f"{where}: a frame must be an object with file_path and "
+                             f"transform_matrix")
+        if not isinstance(fr["file_path"], str) or not fr["file_path"]:
+            raise SceneError(f"{where}: 'file_path' must be a non-empty string")
         p = _frame_image(json_path, fr["file_path"])
-        src = _blender_camera(json_path, {**top, **fr}, image_size(p))
+        src = _blender_camera(json_path, {**top, **fr}, image_size(p), where)
+        try:
+            m = np.asarray(fr["transform_matrix"], dtype=np.float64)
+        except (TypeError, ValueError):
+            raise SceneError(f"{where}: 'transform_matrix' is not a numeric matrix") from None
+        if m.ndim != 2 or m.shape[0] not in (3, 4) or m.shape[1] != 4:
+            raise SceneError(f"{where}: 'transform_matrix' must be 3x4 or 4x4, got shape "
+                             f"{tuple(m.shape)}")
+        if not np.isfinite(m).all():
+            raise SceneError(f"{where}: 'transform_matrix' holds NaN or Inf")
         c2w = np.eye(4)
-        m = np.asarray(fr["transform_matrix"], dtype=np.float64)
         c2w[: m.shape[0], :4] = m[:, :4]
+        if abs(np.linalg.det(c2w[:3, :3])) < 1e-12:
+            raise SceneError(f"{where}: 'transform_matrix' has a singular rotation part")
         c2w[:3, 1:3] *= -1.0            # OpenGL/Blender (y up, z back) -> OpenCV (y down, z fwd)
         name = re.sub(r"^\./", "", str(fr["file_path"]))
         name = str(Path(name).with_suffix("")) if Path(name).suffix.lower() in IMAGE_EXTENSIONS \
