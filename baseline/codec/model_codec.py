@@ -282,7 +282,9 @@ def _decode_model(path, max_bytes) -> DecodedModel:
         apply_overlay(cfg, cfg_dict, "the header's config")
         validate(cfg)
     except ConfigError as e:
-        raise BitstreamError(f"{e} (is the plugin that wrote this file installed?)") from None
+        hint = (" (is the plugin that wrote this file installed?)" if "unknown" in str(e)
+                else "")
+        raise BitstreamError(f"header field 'config': {e}{hint}") from None
     if cfg.model.n_offsets != K:
         raise BitstreamError(f"header field 'config.model.n_offsets' ({cfg.model.n_offsets}) "
                              f"differs from 'n_offsets' ({K})")

@@ -1,0 +1,44 @@
+"""Hostile input, end to end: crafted `.pgs` files (truncations, flips, header fields edited
+with valid CRCs, sections swapped between a HAC and a Predict-GS file or removed, declared-size
+bombs, deep edits inside sections with the file re-signed) decoded in a worker whose address
+space is capped at 1 GiB over its start-up size, through `decode_model`, `pgs info` and
+`pgs decode`: zero tracebacks, hangs, cap hits, or silent decodes of a case that must fail.
+
+``PGS_HOSTILE_RANDOM`` sets the random flips per file (default 60: the suite's budget)."""
+from __future__ import annotations
+
+import os
+
+from baseline.codec.hostile import crafted_cases, run_cases
+
+
+def test_hostile_files_are_refused_cleanly(decoded_files, tmp_path):
+    import dataclasses
+    import json
+
+    from baseline.codec.model_codec import encode_model
+    from baseline.run import load_run
+
+    files = {name: (decoded_files[name] / "model.pgs").read_bytes()
+             for name in ("baseline", "predict-gs")}
+    # the compact codec too: sorted positions (their count not fixed by the section's length),
+    # mask patterns, used grid entries
+    run = decoded_files["predict-gs"]
+    if not (run / "scene.json").exists():
+        (run / "scene.json").write_text(json.dumps({"path": str(decoded_files["scene"])}))
+    t, _ = load_run(run, device="cpu")
+    cfg = dataclasses.replace(t.cfg, codec=dataclasses.replace(
+        t.cfg.codec, positions="sorted", masks="patterns", grids="used"))
+    encode_model(cfg, t.model, t.entropy, tmp_path / "compact.pgs",
+                 extra_header={"scene": str(decoded_files["scene"])})
+    files["compact"] = (tmp_path / "compact.pgs").read_bytes()
+    n = int(os.environ.get("PGS_HOSTILE_RANDOM", "60"))
+    cases = crafted_cases(files, n_random=n, seed=0)
+    kinds = {k: sum(k in c.name for c in cases) for k in
+             ("truncated", "flipped", "header", "taken from", "removed", "re-signed",
+              "n_anchors")}
+    assert kinds["taken from"] >= 10 and kinds["header"] >= 250 and kinds["re-signed"] >= 50
+    st = run_cases(cases, cap_mb=1024, timeout=120.0)
+    assert not st["findings"], "\n".join(f"{n}: {f}" for n, f in st["findings"][:30])
+    assert st["decoded"] == sum(not c.must_fail for c in cases)
+    assert st["refused"] == sum(c.must_fail for c in cases)
