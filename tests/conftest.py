@@ -18,6 +18,23 @@ def demo_cfg(iters: int, *sets: str, patches=()):
 
 
 @pytest.fixture(scope="session")
+def scene_maker(tmp_path_factory):
+    """``make(n_views, width, height, seed, **kw) -> folder``: a synthetic scene, written once
+    per argument set for the whole session (tests must not write into it)."""
+    made = {}
+
+    def make(n_views=10, width=48, height=36, seed=0, **kw):
+        key = (n_views, width, height, seed, tuple(sorted(kw.items())))
+        if key not in made:
+            d = tmp_path_factory.mktemp(f"scene_{n_views}v_{width}x{height}_s{seed}")
+            make_scene(d / "scene", n_views=n_views, width=width, height=height, seed=seed, **kw)
+            made[key] = d / "scene"
+        return made[key]
+
+    return make
+
+
+@pytest.fixture(scope="session")
 def small_scene(tmp_path_factory):
     """A small synthetic COLMAP scene (10 views, 48x36), shared by the whole session: tests
     must not write into it."""

@@ -7,7 +7,6 @@ import numpy as np
 import pytest
 
 from baseline.cli import main
-from baseline.data.synthetic import make_scene
 
 
 @pytest.fixture(scope="module")

@@ -1,37 +1,31 @@
 """Whole-model codec: train briefly into the adaptive phase, encode, decode, compare exactly."""
 import subprocess
 import sys
-from pathlib import Path
 
-import numpy as np
 import pytest
 import torch
 
 from baseline.codec.container import BitstreamError, read_container
 from baseline.codec.model_codec import (decode_model, encode_model, file_info, format_info,
                                         format_rate_check, rate_check)
-from baseline.config import build_config
 from baseline.data.scene import load_scene
-from baseline.data.synthetic import make_scene
 from baseline.eval.evaluate import evaluate
 from baseline.hac.entropy import LIKELIHOOD_FLOOR, gaussian_likelihood
 from baseline.hac.quant import ste_round
 from baseline.pipeline import coded_state
 from baseline.train.trainer import Trainer
+from conftest import demo_cfg
 
 ITERS = 300
 
 
 @pytest.fixture(scope="module")
-def scene(tmp_path_factory):
-    d = tmp_path_factory.mktemp("codec_scene")
-    make_scene(d / "scene", n_views=12, width=64, height=48, seed=2)
-    return load_scene(d / "scene")
+def scene(scene_maker):
+    return load_scene(scene_maker(n_views=12, width=64, height=48, seed=2))
 
 
 def _trained(scene, out, patches=()):
-    cfg = build_config(["demo", *patches], [f"train.iterations={ITERS}", "train.threads=1",
-                                            "train.log_every=1000"])
+    cfg = demo_cfg(ITERS, patches=patches)
     t = Trainer(cfg, scene, out, progress=False)
     t.train()
     assert t.phase == "adaptive"
@@ -208,7 +202,7 @@ def test_encode_cli_codes_positions_without_touching_the_run(tmp_path, scene):
     from baseline.run import train_run
 
     # a few iterations: the codec, not the model, is under test (an untrained context codes too)
-    cfg = build_config(["demo"], ["train.iterations=30", "train.threads=1", "train.log_every=1000"])
+    cfg = demo_cfg(30)
 
     train_run(str(scene.source_path), run, cfg, progress=False, evaluate_after=False)
     before = (run / "results.json").read_text()
@@ -272,7 +266,7 @@ def test_quant_cost_all_rounded_is_the_decoded_file(encoded, scene):
 def test_quant_cost_refuses_a_run_that_codes_nothing(scene, tmp_path):
     from baseline.eval.quantcost import quantization_cost
 
-    cfg = build_config(["demo", "scaffold"], ["train.iterations=5", "train.threads=1"])
+    cfg = demo_cfg(5, patches=["scaffold"])
     t = Trainer(cfg, scene, tmp_path / "r", progress=False)
     t.train()
     with pytest.raises(ValueError, match="adaptive phase"):

@@ -18,6 +18,7 @@ from baseline.device import DeviceError, resolve_device, uniform
 from baseline.eval.evaluate import evaluate
 from baseline.pipeline import coded_state
 from baseline.run import load_run, train_run
+from conftest import demo_cfg
 
 needs_cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
 
@@ -63,16 +64,12 @@ def test_uniform_on_the_cpu_draws_the_old_stream():
 
 # ------------------------------------------------------------------------------ on a GPU
 @pytest.fixture(scope="module")
-def scene_dir(tmp_path_factory):
-    d = tmp_path_factory.mktemp("cuda_scene")
-    make_scene(d / "scene", n_views=12, width=64, height=48, seed=2)
-    return d / "scene"
+def scene_dir(scene_maker):
+    return scene_maker(n_views=12, width=64, height=48, seed=2)
 
 
 def _cfg(patches=(), *sets):
-    return build_config(["demo", *patches], [f"train.iterations={ITERS}", "train.threads=1",
-                                             "train.log_every=1000", "train.device=cuda",
-                                             "train.rasterizer=auto", *sets])
+    return demo_cfg(ITERS, "train.device=cuda", "train.rasterizer=auto", *sets, patches=patches)
 
 
 @pytest.fixture(scope="module", params=["baseline", "predict-gs"])

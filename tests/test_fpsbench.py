@@ -173,9 +173,11 @@ def test_frame_bench_times_each_stage_against_its_reference_form(files, capsys):
         assert st["baked"]["ref"] == st["decode"]["new"] and all(t > 0 for t in st["baked"]["new"])
     # the refiner's heads (Predict-GS's MGRD) alone, a share of its decoding; none for HAC
     assert "refiner" not in res["models"][0]["stages"]
-    st = res["models"][1]["stages"]
-    assert st["refiner"]["ref"] is None
-    assert all(0 < t < d for t, d in zip(st["refiner"]["new"], st["decode"]["new"]))
+    pgs = res["models"][1]["stages"]
+    assert pgs["refiner"]["ref"] is None
+    # timed on its own (a count of samples, not a wall-clock comparison with decode)
+    assert len(pgs["refiner"]["new"]) == 2 and all(math.isfinite(t) and t > 0
+                                                   for t in pgs["refiner"]["new"])
     text = format_frame_bench(res)
     assert text.count("\nprefilter ") == 2 and text.count("\nframe ") == 2
     assert text.count("\nbaked dec ") == 2 and text.count("\nrefiner ") == 1

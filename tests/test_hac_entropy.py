@@ -112,6 +112,7 @@ def test_exact_mlp_is_exact_and_close():
         assert L.bound < 2 ** 52
     torch.set_num_threads(2)
     try:
+        assert torch.get_num_threads() == 2
         assert torch.equal(ex(a), y)
     finally:
         torch.set_num_threads(1)
@@ -220,6 +221,7 @@ def test_round_trip_bit_identical_across_thread_counts(kind):
     for threads in (1, 2):
         torch.set_num_threads(threads)
         try:
+            assert torch.get_num_threads() == threads
             m.chunk = 999  # the decoder follows the stream's chunking, not its own setting
             dec = m.decompress(xyz, blobs, mask, n=n)
         finally:

@@ -198,6 +198,7 @@ def test_exact_path_is_close_and_reproducible():
     assert (fx * 2.0 ** -FEATURE_BITS - ref).abs().max() < 2e-4
     torch.set_num_threads(2)
     try:
+        assert torch.get_num_threads() == 2
         g2 = BinaryHashGrid(chunk=777)
         g2.load_state_dict(g.state_dict())
         assert torch.equal(g2.features_fixed(xyz), fx)

@@ -22,13 +22,13 @@ from baseline.codec.rangecoder import anchor_bounds
 from baseline.config import build_config
 from baseline.contracts import CodedAttribute
 from baseline.data.scene import load_scene
-from baseline.data.synthetic import make_scene
 from baseline.hac.entropy import HACEntropyModel
 from baseline.pipeline import render_view, visible_anchors
 from baseline.render import gsplat_backend, prefilter_anchors, rasterize
 from baseline.scaffold.model import AnchorModel
 from baseline.train.losses import rate_term
 from baseline.train.trainer import Trainer
+from conftest import demo_cfg
 
 K = 3
 ATTRS = (CodedAttribute("feat", 4, 1.0), CodedAttribute("offsets", 3 * K, 0.2, masked=True))
@@ -128,16 +128,13 @@ def test_rate_term_by_hand():
 
 
 @pytest.fixture(scope="module")
-def scene(tmp_path_factory):
-    d = tmp_path_factory.mktemp("rate")
-    make_scene(d / "scene", n_views=8, width=48, height=36, seed=3)
-    return load_scene(d / "scene")
+def scene(scene_maker):
+    return load_scene(scene_maker(n_views=8, width=48, height=36, seed=3))
 
 
 def _trainer(scene, tmp_path, *sets):
     torch.set_num_threads(1)
-    cfg = build_config(["demo"], ["train.iterations=300", "train.threads=1",
-                                  "train.log_every=1000", *sets])
+    cfg = demo_cfg(300, *sets)
     return Trainer(cfg, scene, tmp_path / "run", progress=False)
 
 

@@ -125,16 +125,15 @@ def test_stage_switch_and_resolution_hook():
     assert t.render_scale == pytest.approx(1.0)
 
 
-def test_loaded_run_renders_with_its_refiner(tmp_path):
+def test_loaded_run_renders_with_its_refiner(tmp_path, scene_maker):
     """A stage-2 run loaded from its checkpoint renders like the trainer that wrote it (the
     MGRD switched on by the hooks' restore, not left off until a training step)."""
-    from baseline.data.synthetic import make_scene
     from baseline.run import evaluate_trainer, load_run, train_run
+    from conftest import demo_cfg
 
-    make_scene(tmp_path / "scene", n_views=9, width=48, height=36, seed=4)
-    cfg = build_config(["demo", "predict-gs"], ["train.iterations=40", "train.threads=1",
-                                                "train.log_every=1000"])
-    res = train_run(str(tmp_path / "scene"), tmp_path / "run", cfg, progress=False)
+    scene = scene_maker(n_views=9, width=48, height=36, seed=4)
+    res = train_run(str(scene), tmp_path / "run", demo_cfg(40, patches=["predict-gs"]),
+                    progress=False)
     t, scene = load_run(tmp_path / "run")
     assert t.model.refiner.active is True
     ev = evaluate_trainer(t, scene)

@@ -14,16 +14,15 @@ import time
 import pytest
 import torch
 
-from baseline.config import build_config
 from baseline.data.scene import load_scene
 from baseline.train.trainer import NonFiniteError, Trainer
+from conftest import demo_cfg
 
 PY = sys.executable
 
 
 def _trainer(scene_dir, out, iters=40, *sets):
-    cfg = build_config(["demo"], [f"train.iterations={iters}", "train.threads=1",
-                                  "train.log_every=1000", *sets])
+    cfg = demo_cfg(iters, *sets)
     return Trainer(cfg, load_scene(scene_dir), out, progress=False)
 
 

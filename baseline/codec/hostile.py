@@ -193,7 +193,6 @@ def crafted_cases(files: dict, n_random: int = 200, seed: int = 0) -> list:
 def _deep_edits(label: str, header: dict, sections: list) -> list:
     """Edits inside section payloads, the file re-signed, so they reach the inner decoders."""
     out = []
-    secs = dict(sections)
 
     def with_section(name, payload, what):
         out.append(Case(f"{label}: {what} (re-signed)",
