@@ -62,6 +62,23 @@ def get(kind: str, name: str) -> Any:
     return table[name]
 
 
+def component_class(kind: str, name: str) -> Any:
+    """The class behind a registered component: a lazily imported one (an object with a
+    ``resolve()`` method, as plugins register them) is imported now."""
+    obj = get(kind, name)
+    return obj.resolve() if hasattr(obj, "resolve") else obj
+
+
+def section_labels(kind: str, name: str) -> dict:
+    """A component's names for its bitstream sections (class attribute ``SECTION_LABELS``,
+    section suffix -> what it holds; "" = the component itself): ``{}`` when it declares none
+    or is not registered here."""
+    try:
+        return dict(getattr(component_class(kind, name), "SECTION_LABELS", {}) or {})
+    except (KeyError, ImportError, AttributeError):
+        return {}
+
+
 def names(kind: str) -> list[str]:
     ensure_loaded()
     return sorted(_REGISTRY.get(kind, {}))

@@ -24,5 +24,11 @@ def _lazy(module: str, name: str):
 
         return getattr(importlib.import_module(module), name)(*args, **kwargs)
 
+    def resolve():
+        import importlib
+
+        return getattr(importlib.import_module(module), name)
+
     factory.__qualname__ = f"{module}.{name}"
+    factory.resolve = resolve          # registry.component_class: the class itself
     return factory

@@ -18,6 +18,8 @@ import torch.nn as nn
 
 
 class MGRD(nn.Module):
+    SECTION_LABELS = {"weights": ""}        # its one section: "mgrd" in pgs info and reports
+
     def __init__(self, model, cfg):
         super().__init__()
         p = cfg.ext["predict"]

@@ -34,6 +34,9 @@ def _layout_from_json(layout: dict) -> dict:
 
 
 class SpatialFeaturePool(nn.Module):
+    # what its bitstream sections hold (pgs info / reports: "sfp.grid", "sfp.fusion")
+    SECTION_LABELS = {"grid": "grid", "weights": "fusion"}
+
     def __init__(self, model, cfg, codec_state: Optional[dict] = None):
         """``codec_state``: what :meth:`codec_state` returned when the file was written (the
         decoder passes it back). It fixes the grid layout: with ``predict.grid_auto`` the layout

@@ -108,8 +108,17 @@ def test_interrupted_compare_resumes(scene, tmp_path, monkeypatch, capsys):
     assert rows["entropy-factorized"]["stages_run"] == ["train", "encode", "decode+eval"]
     assert all(r["iterations"] == ITERS for r in rows.values())
     assert res["complete"] is True
-    for name in ("results.json", "report.md", "rd.png", "bits.png", "speed.png"):
+    for name in ("results.json", "report.md", "rd.png", "bits.png", "speed.png", "results.csv"):
         assert (out / name).exists(), name
+    import csv
+    with open(out / "results.csv", newline="") as fh:
+        survey = {x["Submethod"]: x for x in csv.DictReader(fh)}
+    stored = json.loads((out / "results.json").read_text())["runs"]
+    assert len(survey) == len(stored)
+    for r in stored:
+        x = survey[f"{r['method']} lambda={r['lmbda']:g}"]
+        assert float(x["PSNR"]) == pytest.approx(r["psnr"], abs=1e-4)
+        assert int(x["Size [Bytes]"]) == r["bytes"] and int(x["#Gaussians"]) == r["masks_on"]["on"]
 
     # ---- the entropy-model swap: two comparable rows (same everything but the entropy model)
     b, f = rows[BASELINE], rows["entropy-factorized"]
@@ -118,6 +127,11 @@ def test_interrupted_compare_resumes(scene, tmp_path, monkeypatch, capsys):
     secs_b = {s["section"] for s in b["sections"]}
     secs_f = {s["section"] for s in f["sections"]}
     assert "em.grid" in secs_b and "em.grid" not in secs_f and "em.factorized" in secs_f
+    # named by the component that owns them
+    labels = {s["section"]: s["label"] for r in rows.values() for s in r["sections"]}
+    assert labels["em.grid"] == "hac.grid" and labels["em.factorized"] == "factorized"
+    assert labels["provider.grid"] == "sfp.grid" and labels["provider.weights"] == "sfp.fusion"
+    assert labels["refiner.weights"] == "mgrd" and labels["decoder.weights"] == "decoder"
     for r in rows.values():
         pgs_file = Path(r["run_dir"]) / MODEL_FILE
         info = file_info(pgs_file)

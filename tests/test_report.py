@@ -316,3 +316,35 @@ def test_a_lambda_missing_a_seed_stays_off_the_mean_curve():
     bd = {b["seed"]: b for b in compute_bd(res)}
     assert bd["mean"]["bd_rate"] is None and "needs >= 3" in bd["mean"]["note"]
     assert bd[0]["bd_rate"] == pytest.approx(-20.0, abs=1e-4)
+
+
+def test_survey_csv_matches_the_results(tmp_path):
+    import csv
+
+    for res in (stored_results(), seeded_results()):
+        for i, r in enumerate(res["runs"]):
+            r["masks_on"] = {"on": 1000 + i, "total": 5000}
+        paths = write_report(res, tmp_path / str(len(res["runs"])), plots=False)
+        with open(paths["csv"], newline="") as f:
+            rows = list(csv.DictReader(f))
+        assert list(rows[0]) == ["Submethod", "PSNR", "SSIM", "LPIPS", "Size [Bytes]",
+                                 "#Gaussians"]
+        per_run = [x for x in rows if "mean of" not in x["Submethod"]]
+        assert len(per_run) == len(res["runs"])
+        for r in res["runs"]:
+            name = f"{r['method']} lambda={r['lmbda']:g}" + (
+                f" seed={r['seed']}" if r.get("seed") is not None else "")
+            x = next(x for x in per_run if x["Submethod"] == name)
+            assert float(x["PSNR"]) == pytest.approx(r["psnr"], abs=1e-4)
+            assert float(x["SSIM"]) == pytest.approx(r["ssim"], abs=1e-4)
+            assert x["LPIPS"] == "" and int(x["Size [Bytes]"]) == r["bytes"]
+            assert int(x["#Gaussians"]) == r["masks_on"]["on"]
+        means = [x for x in rows if "mean of" in x["Submethod"]]
+        assert len(means) == (6 if res.get("seeds") else 0)
+        for x in means:
+            m, lam = x["Submethod"].split(" lambda=")
+            lam = float(lam.split()[0])
+            rs = [r for r in res["runs"] if r["method"] == m and r["lmbda"] == lam]
+            assert float(x["Size [Bytes]"]) == pytest.approx(sum(r["bytes"] for r in rs) / 2)
+            assert float(x["PSNR"]) == pytest.approx(sum(r["psnr"] for r in rs) / 2, abs=1e-4)
+        assert "results.csv" in paths["report"].read_text()

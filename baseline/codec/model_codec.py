@@ -359,6 +359,30 @@ def section_group(name: str, header: dict) -> str:
     return "mlps"
 
 
+def section_label(name: str, header: dict) -> str:
+    """What a section holds, named by the component that owns it (``pgs info``, reports):
+    ``provider.*`` / ``refiner.*`` / ``em.*`` by the registered provider, refiner and entropy
+    model of the file (their ``SECTION_LABELS``: Predict-GS's ``sfp.grid``, ``sfp.fusion``,
+    ``mgrd``; HAC's ``hac.grid``, ``hac.mlp``), ``decoder.weights`` as ``decoder``; the
+    others (positions, masks, the coded attributes) by their own names."""
+    from baseline import registry
+
+    if name == "decoder.weights":
+        return "decoder"
+    cfg = header.get("config") if isinstance(header.get("config"), dict) else {}
+    model = cfg.get("model") if isinstance(cfg.get("model"), dict) else {}
+    ent = header.get("entropy") if isinstance(header.get("entropy"), dict) else {}
+    owners = {"provider": ("feature_provider", model.get("feature_provider")),
+              "refiner": ("refiner", model.get("refiner")),
+              "em": ("entropy_model", ent.get("kind"))}
+    head, _, suffix = name.partition(".")
+    if head not in owners or not isinstance(owners[head][1], str) or not suffix:
+        return name
+    kind, comp = owners[head]
+    label = registry.section_labels(kind, comp).get(suffix, suffix)
+    return comp if label == "" else f"{comp}.{label}"
+
+
 def file_info(path: str | Path) -> dict:
     """Per-section and per-group allocation read from the file itself (its header checked as
     the decoder checks it)."""
@@ -373,8 +397,8 @@ def file_info(path: str | Path) -> dict:
         check_header(header, sections, len(raw), max_bytes=1 << 62)   # reads, allocates nothing
     except BitstreamError as e:
         raise BitstreamError(f"{path}: {e}") from None
-    rows = [{"section": n, "bytes": len(b), "group": section_group(n, header)}
-            for n, b in sections.items()]
+    rows = [{"section": n, "label": section_label(n, header), "bytes": len(b),
+             "group": section_group(n, header)} for n, b in sections.items()]
     total = len(raw)
     groups: dict[str, int] = {}
     for r in rows:
@@ -432,8 +456,8 @@ def format_info(info: dict) -> str:
     lines = [f"{'section':<22}{'group':<16}{'bytes':>12}{'MB':>10}{'share':>8}"]
     tot = info["total_bytes"]
     for r in info["sections"]:
-        lines.append(f"{r['section']:<22}{r['group']:<16}{r['bytes']:>12}{r['bytes'] / mb:>10.4f}"
-                     f"{100 * r['bytes'] / tot:>7.1f}%")
+        lines.append(f"{r.get('label', r['section']):<22}{r['group']:<16}{r['bytes']:>12}"
+                     f"{r['bytes'] / mb:>10.4f}{100 * r['bytes'] / tot:>7.1f}%")
     lines.append("")
     lines.append(f"{'group':<38}{'bytes':>12}{'MB':>10}{'share':>8}")
     for g, b in sorted(info["groups"].items(), key=lambda kv: -kv[1]):

@@ -293,6 +293,12 @@ def table3(results: dict) -> Table:
                  left=2)
 
 
+def _label(section: dict) -> str:
+    """A section's name as the component that owns it calls it (``pgs info``); records kept
+    before labels: the file's section name."""
+    return section.get("label") or section["section"]
+
+
 def section_tables(results: dict) -> list[Table]:
     tables = []
     for point in rate_points(results):
@@ -303,10 +309,10 @@ def section_tables(results: dict) -> list[Table]:
         names: list[tuple[str, str]] = []
         for r in point:
             for s in r["sections"]:
-                if (s["section"], s["group"]) not in names:
-                    names.append((s["section"], s["group"]))
+                if (_label(s), s["group"]) not in names:
+                    names.append((_label(s), s["group"]))
         names.sort(key=lambda sg: (GROUP_ORDER.index(sg[1]) if sg[1] in GROUP_ORDER else 99, sg[0]))
-        per = [{s["section"]: s["bytes"] for s in r["sections"]} for r in point]
+        per = [{_label(s): s["bytes"] for s in r["sections"]} for r in point]
         rows = [[sec, grp] + [str(d[sec]) if sec in d else "-" for d in per] for sec, grp in names]
         hf = [r["groups"].get("header+framing", 0) for r in point]
         rows.append(["(header + framing)", "header+framing"] + [str(x) for x in hf])
@@ -675,6 +681,14 @@ def format_report(results: dict, markdown: bool = False) -> str:
         plots = results.get("plots") or {}
         if plots:
             parts += ["", "### Plots", ""] + [f"![{k}]({Path(v).name})" for k, v in plots.items()]
+        parts += ["", "### Survey CSV", "",
+                  "`results.csv` beside this report holds these runs in the 3DGS compression "
+                  "survey's layout (Submethod, PSNR, SSIM, LPIPS, Size [Bytes], #Gaussians): one "
+                  "row per method and rate point" + (" and seed, then each point's seed mean"
+                                                     if seeds_of(results) else "")
+                  + ". #Gaussians counts the neural Gaussians the file codes (Gaussian masks on: "
+                  "every Gaussian a view of the decoded model can draw; its anchors x K before "
+                  "the masks); LPIPS is empty when it was not measured."]
         return "\n".join(parts) + "\n"
     parts = [t.text() for t in tables]
     if not results.get("complete", True):
@@ -682,6 +696,56 @@ def format_report(results: dict, markdown: bool = False) -> str:
     w = max(len(k) for k, _ in prot)
     parts.append("Protocol\n========\n" + "\n".join(f"{k.ljust(w)}  {v}" for k, v in prot))
     return "\n\n".join(parts)
+
+
+SURVEY_COLUMNS = ["Submethod", "PSNR", "SSIM", "LPIPS", "Size [Bytes]", "#Gaussians"]
+
+
+def gaussians_count(row: dict) -> Optional[int]:
+    """The survey's #Gaussians of a run: the neural Gaussians its file codes (masks on: every
+    one a decoded view can draw), read from the file; None for records kept without it."""
+    m = row.get("masks_on") or {}
+    return int(m["on"]) if "on" in m else None
+
+
+def survey_rows(results: dict) -> list[dict]:
+    """The 3DGS compression survey's CSV layout (``SURVEY_COLUMNS``): one row per method and
+    rate point (per seed, then the seed mean, in a comparison with seeds). LPIPS empty when not
+    measured; #Gaussians: :func:`gaussians_count`."""
+    def fmt(v, nd):
+        return "" if v is None else f"{v:.{nd}f}"
+
+    rows = []
+    for m in method_names(results):
+        for r in runs_of(results, m):
+            name = f"{m} lambda={r['lmbda']:g}" + (f" seed={r['seed']}" if r.get("seed") is not None
+                                                   else "")
+            g = gaussians_count(r)
+            rows.append({"Submethod": name, "PSNR": fmt(r["psnr"], 4), "SSIM": fmt(r["ssim"], 4),
+                         "LPIPS": fmt(r.get("lpips"), 4), "Size [Bytes]": str(int(r["bytes"])),
+                         "#Gaussians": "" if g is None else str(g)})
+        for pt in seed_mean_points(results, m):
+            rs = [r for r in runs_of(results, m) if r["lmbda"] == pt["lmbda"]]
+            lp = [r.get("lpips") for r in rs]
+            gs = [gaussians_count(r) for r in rs]
+            rows.append({"Submethod": f"{m} lambda={pt['lmbda']:g} (mean of {pt['n']} seeds)",
+                         "PSNR": fmt(pt["psnr"], 4), "SSIM": fmt(pt["ssim"], 4),
+                         "LPIPS": "" if None in lp else fmt(sum(lp) / len(lp), 4),
+                         "Size [Bytes]": f"{pt['bytes']:.1f}",
+                         "#Gaussians": "" if None in gs else f"{sum(gs) / len(gs):.1f}"})
+    return rows
+
+
+def write_survey_csv(results: dict, path: str | Path) -> Path:
+    import csv
+    import io
+
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, fieldnames=SURVEY_COLUMNS, lineterminator="\n")
+    w.writeheader()
+    w.writerows(survey_rows(results))
+    write_text_atomic(path, buf.getvalue())
+    return Path(path)
 
 
 def write_report(results: dict, out_dir: str | Path, plots: bool = True) -> dict:
@@ -695,6 +759,7 @@ def write_report(results: dict, out_dir: str | Path, plots: bool = True) -> dict
 
         results["plots"] = {k: str(v) for k, v in write_plots(results, out_dir).items()}
         paths.update({k: Path(v) for k, v in results["plots"].items()})
+    paths["csv"] = write_survey_csv(results, out_dir / "results.csv")
     md = out_dir / "report.md"
     write_text_atomic(md, format_report(results, markdown=True))
     paths["report"] = md

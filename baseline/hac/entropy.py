@@ -499,6 +499,7 @@ class FactorizedEntropyModel(EntropyModel):
     """
 
     kind = "factorized"
+    SECTION_LABELS = {"factorized": ""}     # its one section: "factorized" in pgs info
 
     def __init__(self, attrs: Sequence[CodedAttribute], n_masks: int, **options):
         super().__init__(attrs, n_masks, **options)
