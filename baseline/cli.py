@@ -276,7 +276,8 @@ def cmd_compare(args) -> int:
                               lpips_weights=args.lpips_weights, progress=not args.no_progress,
                               plots=not args.no_plots, only=args.only, remeasure=args.remeasure,
                               report_only=args.report_only, reference=args.reference,
-                              codec=args.codec, seeds=args.seeds)
+                              codec=args.codec, seeds=args.seeds,
+                              panel_views=args.panel_views)
     except KeyboardInterrupt:
         print(f"\ninterrupted: finished stages are kept in {args.out}; run the same command "
               f"again to resume", file=sys.stderr)
@@ -421,6 +422,10 @@ def main(argv=None) -> int:
     p.add_argument("--lambda", dest="lambdas", type=float, nargs="+", action="extend",
                    default=None, metavar="L", help="rate points (entropy.lmbda); default: the "
                    "config's own; >= 3 give BD-rate / BD-PSNR")
+    p.add_argument("--panel-views", type=int, nargs="*", default=None, metavar="V",
+                   help="test views (indices) drawn in the report's panels: ground truth, each "
+                        "method's decoded render, error map and bit map (default: 0; none "
+                        "with an empty list)")
     p.add_argument("--seeds", type=int, nargs="+", default=None, metavar="S",
                    help="train every rate point once per seed (train.seed): the report gives "
                         "each point's seed mean and spread and BD-rate per seed and on the "

@@ -47,6 +47,7 @@ from baseline.config import GRID_CODINGS
 from baseline.contracts import feature_cache
 
 FORMAT = "pgs-anchor-model"
+CODER_FLOOR = 2.0 ** -24     # the least probability constriction's leaky quantizer gives a bin
 MASK_LOGIT = 20.0      # decoded masks as logits: sigmoid(+-20) is unambiguously on / off
 
 
@@ -236,6 +237,7 @@ class DecodedModel:
     model: object
     header: dict
     decode_s: float
+    entropy: object = None          # the file's entropy model (its probabilities: coded_bits)
 
     @property
     def scene_path(self) -> Optional[str]:
@@ -343,7 +345,38 @@ def _decode_model(path, max_bytes) -> DecodedModel:
     if feature_cache(model) is not None:
         model.provider.build_cache(xyz)
     model.eval()
-    return DecodedModel(cfg=cfg, model=model, header=header, decode_s=time.perf_counter() - t0)
+    return DecodedModel(cfg=cfg, model=model, header=header, decode_s=time.perf_counter() - t0,
+                        entropy=entropy)
+
+
+@torch.no_grad()
+def coded_bits_per_anchor(dec: DecodedModel) -> torch.Tensor:
+    """[N] float64: each decoded anchor's coded attributes' information content under the
+    file's own probability model (``-log2 p`` of every coded value, ``p`` from the exact path
+    the range coder used, floored at the coder's 2^-24 as its leaky quantizer floors it;
+    masked-off values cost nothing). Summed over the anchors it is the attribute sections'
+    payload to within the range coder's overhead."""
+    ent, model = dec.entropy, dec.model
+    xyz = model.xyz.detach().cpu()
+    n = xyz.shape[0]
+    gmask = (model.gaussian_mask().detach().cpu() > 0)
+    out = torch.zeros(n, dtype=torch.float64)
+    ctx = ent._exact_context()
+    for s in range(0, n, ent.chunk):
+        e = min(n, s + ent.chunk)
+        P = ent.params(xyz[s:e], exact=True, _ctx=ctx)
+        for a in ent.attrs:
+            mean, scale, q = (t.double() for t in P[a.name])
+            x = model.fixed_values[a.name][s:e].detach().cpu().double()
+            half = 0.5 * q
+            p = (torch.special.ndtr((x + half - mean) / scale)
+                 - torch.special.ndtr((x - half - mean) / scale)).abs()
+            bits = -torch.log2(p.clamp_min(CODER_FLOOR))
+            m = ent.value_mask(a, gmask[s:e], e - s)
+            if m is not None:
+                bits = bits * m.double()
+            out[s:e] += bits.sum(dim=1)
+    return out
 
 
 def section_group(name: str, header: dict) -> str:

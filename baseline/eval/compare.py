@@ -559,7 +559,8 @@ def run_compare(scene: str | Path, out: str | Path, vs: list[str] = (),
                 progress: bool = True, plots: bool = True, echo: bool = True,
                 only: Optional[list[str]] = None, remeasure: bool = False,
                 report_only: bool = False, reference: Optional[str] = None,
-                codec: Optional[str] = None, seeds: Optional[list[int]] = None) -> dict:
+                codec: Optional[str] = None, seeds: Optional[list[int]] = None,
+                panel_views: Optional[list[int]] = None) -> dict:
     """Run (or resume) a comparison; write ``out/results.json``, ``out/report.md`` and plots.
 
     ``only``: bring only the runs of these methods (names as in the report: ``baseline``, a
@@ -579,6 +580,8 @@ def run_compare(scene: str | Path, out: str | Path, vs: list[str] = (),
     folders unchanged); e.g. ``"compact-codec"``.
     ``seeds``: train every rate point once per seed (``train.seed``); the report then gives each
     point's seed mean and spread, and BD-rate per seed and on the seed-mean curves.
+    ``panel_views``: test views drawn in the report's panels (render, error map, bit map per
+    method; default ``[0]``, ``[]`` for none).
     """
     from baseline.eval.metrics import load_lpips
     from baseline.eval.report import format_report, write_report
@@ -690,7 +693,7 @@ def run_compare(scene: str | Path, out: str | Path, vs: list[str] = (),
     bar.close()
     results["complete"] = not results["missing"]
     results["wall_s_this_invocation"] = time.perf_counter() - t0
-    paths = write_report(results, out, plots=plots)
+    paths = write_report(results, out, plots=plots, panel_views=panel_views)
     results["report"] = {k: str(v) for k, v in paths.items()}
     write_json_atomic(out / "results.json", results)
     if echo:

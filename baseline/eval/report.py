@@ -681,6 +681,20 @@ def format_report(results: dict, markdown: bool = False) -> str:
         plots = results.get("plots") or {}
         if plots:
             parts += ["", "### Plots", ""] + [f"![{k}]({Path(v).name})" for k, v in plots.items()]
+        panels = results.get("panels") or []
+        if panels:
+            parts += ["", "### Where the methods differ", "",
+                      "Per rate point and test view, from each method's decoded file: its "
+                      "render, its per-pixel error against the ground truth (mean over RGB, "
+                      "grey levels; one colour scale per panel) and its bit map (each anchor's "
+                      "coded bits, under the file's own probabilities, at the pixel its centre "
+                      "projects to; one colour scale per panel). Single images and arrays "
+                      "beside each panel in `panels/`."]
+            for p in panels:
+                rel = Path(p["panel"]).relative_to(Path(p["panel"]).parents[2])
+                parts += ["", f"![lambda {p['lmbda']:g}, view {p['view']}]({rel.as_posix()})"]
+                if p.get("missing"):
+                    parts.append(f"(not drawn, no model file: {', '.join(p['missing'])})")
         parts += ["", "### Survey CSV", "",
                   "`results.csv` beside this report holds these runs in the 3DGS compression "
                   "survey's layout (Submethod, PSNR, SSIM, LPIPS, Size [Bytes], #Gaussians): one "
@@ -748,17 +762,24 @@ def write_survey_csv(results: dict, path: str | Path) -> Path:
     return Path(path)
 
 
-def write_report(results: dict, out_dir: str | Path, plots: bool = True) -> dict:
-    """Write ``report.md`` (+ the PNG plots) into ``out_dir``; returns the written paths."""
+def write_report(results: dict, out_dir: str | Path, plots: bool = True,
+                 panel_views: Optional[list] = None) -> dict:
+    """Write ``report.md`` (+ the PNG plots, the survey CSV and, with ``plots``, the panels of
+    test views ``panel_views``, default ``[0]``; ``[]`` for none) into ``out_dir``; returns the
+    written paths."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     results["bd"] = compute_bd(results)
     paths = {}
     if plots and results["runs"]:
+        from baseline.eval.panel import write_panels
         from baseline.eval.plots import write_plots
 
         results["plots"] = {k: str(v) for k, v in write_plots(results, out_dir).items()}
         paths.update({k: Path(v) for k, v in results["plots"].items()})
+        results["panels"] = write_panels(results, out_dir, panel_views)
+        for i, p in enumerate(results["panels"]):
+            paths[f"panel{i}"] = Path(p["panel"])
     paths["csv"] = write_survey_csv(results, out_dir / "results.csv")
     md = out_dir / "report.md"
     write_text_atomic(md, format_report(results, markdown=True))
