@@ -111,7 +111,7 @@ def test_every_shipped_patch_builds_and_changes_something():
 
 def test_hash_of_finished_runs_survives_new_options():
     """Options added later (LATER_KEYS) stay out of the hash at their default: the demo-preset
-    HAC and Predict-GS runs archived in docs/examples/demo-sfp-grid-auto keep their folder hashes
+    HAC and Predict-GS runs archived in docs/examples/demo-schedule/1k keep their folder hashes
     under their training semantics (version 1); the option turned on gives a new one. The
     current training semantics gives every config a new hash, so those records are never
     reused as if trained by the current code."""
@@ -120,7 +120,7 @@ def test_hash_of_finished_runs_survives_new_options():
     base = build_config(["cpu", "demo"], ["entropy.lmbda=0.004"])
     assert ("lr", "mask_schedule_scaled") in LATER_KEYS
     archived = {p.name.rsplit("-", 1)[1] for p in
-                (Path(__file__).parent.parent / "docs/examples/demo-sfp-grid-auto/runs").iterdir()}
+                (Path(__file__).parent.parent / "docs/examples/demo-schedule/1k/runs").iterdir()}
     assert TRAINING_SEMANTICS >= 2 and config_hash(base) not in archived
 
     def h1(c):                          # the rest of the test: version-1 hashes

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
-# The checks of one lent-GPU session, in one call of the workplace's device tool (the machine
-# has no network and gets only the repository: see README "On a lent GPU").
+# The GPU checks in one call, for a GPU machine without network that receives only the
+# repository (see README, "GPU checks on a machine without network").
 #
 # Prepared here, in git-ignored .carry/ (listed in .git/info/exclude):
 #   .carry/site.tar.xz        cp312 x86-64 installs of gsplat, constriction, pycolmap,

@@ -1,4 +1,4 @@
-# Sourced by tools/device_check.sh and tools/device_rerun.sh on a lent GPU machine: unpack the
+# Sourced by tools/device_check.sh and tools/device_rerun.sh on the GPU machine: unpack the
 # carried installs (.carry/site.tar.xz, see device_check.sh), register the project's entry
 # points, build gsplat's CUDA extension. Sets OUT, SITE, PYTHONPATH, thread counts, stamp().
 export PYTHONUNBUFFERED=1

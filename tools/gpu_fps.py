@@ -1,7 +1,8 @@
-"""Decoded-model FPS on a machine that does not hold the scene (a lent GPU).
+"""Decoded-model FPS on a machine that does not hold the scene (e.g. a GPU node without network
+that receives only the repository).
 
-``pgs bench fps`` loads the test views from the scene named in each file's header; a lent GPU
-machine receives only the repository (64 MiB), not ``../shared/data``. This tool splits the job:
+``pgs bench fps`` loads the test views from the scene named in each file's header; such a
+machine has the ``.pgs`` files but not the scene. This tool splits the job:
 
     # here, where the scene is: the test cameras of the files' scene, a few KB
     python tools/gpu_fps.py export RUN_OR_FILE.pgs -o cams.pt

@@ -571,7 +571,7 @@ def run_compare(scene: str | Path, out: str | Path, vs: list[str] = (),
     ``remeasure``: see :func:`run_one`.
     ``report_only``: train and measure nothing; report the finished runs (archived records
     included) and list the others as missing (``results["missing"]``). For a long comparison
-    that spans sessions or machines: its report so far, without starting the runs still to do.
+    that spans days or machines: its report so far, without starting the runs still to do.
     ``reference``: patches (joined by '+') of an uncompressed run on the same protocol, e.g.
     ``"scaffold"``: trained once (``--only reference`` trains just it), measured as the trained
     model on the test views plus its float32 size (:func:`float32_bytes`); the report then gives

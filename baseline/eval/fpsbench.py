@@ -1,7 +1,7 @@
 """``pgs bench fps``: rendering speed of decoded models against a reference, in one process.
 
 FPS taken by ``pgs compare`` is one pass over the test views per run, measured whenever the run
-finished; on this machine the same decoded file measured in two sessions gave 2.9 and 5.1 FPS, so
+finished; on a 2-core machine the same decoded file measured at two times gave 2.9 and 5.1 FPS, so
 the ratio of two such figures is not a measurement. This bench decodes every file first, then
 renders the same views with each model in turn, several rounds, the order rotated every round
 (so neither a warm-up nor a slow drift of the machine favours one model), and reports each

@@ -372,7 +372,7 @@ def speed_table(results: dict) -> Table:
                      _with_change(results, r, "gaussians_mean", _count)])
     notes = ["FPS = 1 / mean per-view time of prefilter + Gaussian decoding + rasterization on the "
              "test views (the first 5 views skipped when there are more), decoded model.",
-             "Train time is the optimization loop only (summed over resumed sessions); "
+             "Train time is the optimization loop only (summed over the parts of a resumed run); "
              "every timing is one measurement on the machine as it was loaded at the time.",
              "FPS of runs measured at different times do not make a speed ratio (the machine's "
              "load changes between them): `pgs bench fps --run A --run B` times decoded files "
