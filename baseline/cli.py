@@ -249,6 +249,12 @@ def cmd_bench(args) -> int:
         print(format_fps_bench(bench_files(args.run, scene=args.scene, rounds=rounds,
                                            threads=args.threads, device=args.device,
                                            max_views=args.views)))
+    elif args.what == "train":
+        from baseline.train.bench import format_train_bench, run_train_bench
+
+        print(format_train_bench(run_train_bench(args.run, steps=args.steps,
+                                                 threads=args.threads or 1,
+                                                 anchors=args.anchors)))
     elif args.what == "frame":
         from baseline.eval.fpsbench import bench_frame_files, format_frame_bench
 
@@ -399,7 +405,7 @@ def main(argv=None) -> int:
     p.set_defaults(fn=cmd_export_ply)
 
     p = sub.add_parser("bench", help="benchmarks, printed as ratios to a reference in one process")
-    p.add_argument("what", choices=["raster", "codec", "grid", "fps", "frame"])
+    p.add_argument("what", choices=["raster", "codec", "grid", "fps", "frame", "train"])
     p.add_argument("--threads", type=int, default=None)
     p.add_argument("--anchors", type=int, default=None,
                    help="payload size (default: codec 500k, grid 100k)")
@@ -413,6 +419,8 @@ def main(argv=None) -> int:
                    help="fps / frame: the scene (default: the one each file names in its header)")
     p.add_argument("--views", type=int, default=None, help="fps / frame: time only the first N views")
     p.add_argument("--device", default="cpu", help="fps / frame: cpu | cuda | cuda:N | auto")
+    p.add_argument("--steps", type=int, default=10,
+                   help="train: timed training steps per run (after 2 untimed)")
     p.set_defaults(fn=cmd_bench)
 
     p = sub.add_parser("compare", help="train/encode/decode methods side by side: tables, BD-rate, plots")

@@ -20,6 +20,7 @@ from baseline.camera import Camera
 from baseline.device import uniform
 from baseline.hac.quant import ste_round
 from baseline.render import prefilter_anchors, rasterize
+from baseline.timing import backward_mark, stage
 
 
 @dataclass
@@ -116,7 +117,8 @@ def render_view(model, cam: Camera, background: torch.Tensor, *, phase: str = "n
         out = rasterize(g.means, g.quats, g.scales, g.opacities, g.colors, cam,
                         background=background, backend=backend)
         return ViewResult(render=out, gaussians=g, camera=cam)
-    idx = visible_anchors(model, cam)
+    with stage("prefilter"):
+        idx = visible_anchors(model, cam)
     if phase == "decoded" and getattr(model, "baked", None) is not None \
             and not torch.is_grad_enabled():
         g = model.baked.decode(cam.center, idx)          # the decoded model's baked form
@@ -145,16 +147,21 @@ def render_view(model, cam: Camera, background: torch.Tensor, *, phase: str = "n
             valid = (gmask.detach() > 0).any(dim=1)
             valid_share = float(valid.float().mean()) if len(idx) else 1.0
             choose = (uniform(len(idx), generator, idx.device) <= rate_sample) & valid
-            values, bits = entropy(xyz, values, gmask, training=True, rate_rows=choose,
-                                   decoder_quant=decoder_quant)
+            with stage("context + rate"):
+                values, bits = entropy(xyz, values, gmask, training=True, rate_rows=choose,
+                                       decoder_quant=decoder_quant)
             n_rate = int(choose.sum())
         else:
             hard = (gmask.detach() > 0).float()
             values = entropy.quantize_for_coding(xyz, values, hard)
     elif phase not in ("none", "decoded"):
         raise ValueError(f"unknown phase '{phase}'")
-    g = model.decode(cam.center, idx, values, xyz=xyz)
-    out = rasterize(g.means, g.quats, g.scales, g.opacities, g.colors, cam,
-                    background=background, backend=backend)
+    with stage("decode"):
+        g = model.decode(cam.center, idx, values, xyz=xyz)
+    backward_mark(g.means, "rasterize bwd")
+    with stage("rasterize"):
+        out = rasterize(g.means, g.quats, g.scales, g.opacities, g.colors, cam,
+                        background=background, backend=backend)
+    backward_mark(out.image, "losses bwd")
     return ViewResult(render=out, gaussians=g, camera=cam, bits=bits, n_rate_anchors=n_rate,
                       valid_share=valid_share)

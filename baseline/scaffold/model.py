@@ -16,6 +16,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from baseline.contracts import CodedAttribute
+from baseline.timing import backward_mark, stage
 
 # grow rule: (values of this tensor [N, ...], parent index of each new-anchor candidate [C],
 #             inverse index candidate -> new anchor [C], number of new anchors) -> [n_new, ...]
@@ -224,15 +225,21 @@ class AnchorModel(nn.Module):
             values = self.coded_values(idx)
         if xyz is None:
             xyz = self.per_anchor["xyz"][idx]
-        feat = self.provider.decoder_features(idx, values, xyz)
+        with stage("provider"):
+            feat = self.provider.decoder_features(idx, values, xyz)
+        backward_mark(feat, "decoder MLPs + refiner bwd")
         view_dir, dist = view_inputs(xyz, cam_center)
-        raw_op, raw_cov, raw_col = self.decoder(feat, view_dir, dist)
+        with stage("decoder MLPs"):
+            raw_op, raw_cov, raw_col = self.decoder(feat, view_dir, dist)
         if self.refiner is not None and self.refiner.active:
-            d = self.refiner(idx, values, view_dir, dist)
-            # Corrections enter before the activations (documented contract of refiners).
-            raw_op = raw_op + d["opacity"]
-            raw_cov = raw_cov + d["cov"]
-            raw_col = raw_col + d["color"]
+            with stage("refiner"):
+                d = self.refiner(idx, values, view_dir, dist)
+                # Corrections enter before the activations (documented contract of refiners).
+                raw_op = raw_op + d["opacity"]
+                raw_cov = raw_cov + d["cov"]
+                raw_col = raw_col + d["color"]
+        for t in (raw_op, raw_cov, raw_col):
+            backward_mark(t, "activations bwd")
         return values, xyz, raw_op, raw_cov, raw_col
 
     def decode(self, cam_center: torch.Tensor, idx: torch.Tensor,

@@ -30,6 +30,8 @@ from baseline.device import make_generator, resolve_device
 from baseline.fileio import atomic_path, write_text_atomic
 from baseline.pipeline import render_view
 from baseline.scaffold.build import build_entropy, build_model, entropy_param_groups
+from baseline.timing import active as active_timer
+from baseline.timing import stage
 from baseline.train.losses import lr_exp, rate_term, reconstruction_loss
 
 CHECKPOINT_NAME = "checkpoint.pt"
@@ -205,19 +207,23 @@ class Trainer:
 
     # -------------------------------------------------------------------------------- loop
     def step(self, it: int) -> dict:
+        """One training iteration. Its stages are named for ``pgs bench train``
+        (:mod:`baseline.timing`; free when no bench is timing them)."""
         cfg = self.cfg
-        for h in self.hooks:
-            if hasattr(h, "before_step"):
-                h.before_step(it)
-        self.update_lr(it)
-        cam = self.next_view()
-        gt = self.scene.image(cam).to(self.device, non_blocking=True)
-        if self.render_scale != 1.0:
-            cam_r = cam.scaled(self.render_scale)
-            gt = torch.nn.functional.interpolate(
-                gt.permute(2, 0, 1)[None], size=(cam_r.height, cam_r.width), mode="bilinear",
-                align_corners=False, antialias=False)[0].permute(1, 2, 0)
-            cam = cam_r
+        with stage("hooks before"):
+            for h in self.hooks:
+                if hasattr(h, "before_step"):
+                    h.before_step(it)
+            self.update_lr(it)
+        with stage("view + ground truth"):
+            cam = self.next_view()
+            gt = self.scene.image(cam).to(self.device, non_blocking=True)
+            if self.render_scale != 1.0:
+                cam_r = cam.scaled(self.render_scale)
+                gt = torch.nn.functional.interpolate(
+                    gt.permute(2, 0, 1)[None], size=(cam_r.height, cam_r.width), mode="bilinear",
+                    align_corners=False, antialias=False)[0].permute(1, 2, 0)
+                cam = cam_r
         res = render_view(self.model, cam, self.background, phase=self.phase, training=True,
                           entropy=self.entropy, rate_sample=cfg.entropy.rate_sample,
                           backend=cfg.train.rasterizer, generator=self.step_generator,
@@ -225,33 +231,43 @@ class Trainer:
         g, out = res.gaussians, res.render
         if out.means2d.requires_grad:
             out.means2d.retain_grad()
-        loss, l1 = reconstruction_loss(out.image, gt, cfg.train.lambda_dssim)
-        terms = {"l1": float(l1.detach())}
-        if g.scales.shape[0] > 0 and cfg.train.lambda_volume > 0:
-            loss = loss + cfg.train.lambda_volume * g.scales.prod(dim=1).mean()
-        if self.phase == "adaptive":
-            hb = self.entropy.hash_bits()
-            if hasattr(self.model.provider, "rate_bits"):   # e.g. Predict-GS's SFP grid
-                hb = hb + self.model.provider.rate_bits()
-            rate, bpv = rate_term(res.bits, res.n_rate_anchors, res.valid_share, hb,
-                                  self.model.n_anchors, self.rate_values_per_anchor)
-            if bpv is not None:
-                terms["bpp"] = bpv
-                terms["valid_share"] = res.valid_share
-            loss = loss + cfg.entropy.lmbda * rate
-            loss = loss + cfg.entropy.mask_lambda * torch.sigmoid(self.model.per_anchor["mask"]).mean()
-        ctx = {"render": out, "gaussians": g, "camera": cam, "gt": gt, "result": res}
-        for name, fn in self.extra_losses.items():
-            loss = loss + fn(ctx)
+        with stage("losses"):
+            loss, l1 = reconstruction_loss(out.image, gt, cfg.train.lambda_dssim)
+            terms = {"l1": float(l1.detach())}
+            if g.scales.shape[0] > 0 and cfg.train.lambda_volume > 0:
+                loss = loss + cfg.train.lambda_volume * g.scales.prod(dim=1).mean()
+            if self.phase == "adaptive":
+                hb = self.entropy.hash_bits()
+                if hasattr(self.model.provider, "rate_bits"):   # e.g. Predict-GS's SFP grid
+                    hb = hb + self.model.provider.rate_bits()
+                rate, bpv = rate_term(res.bits, res.n_rate_anchors, res.valid_share, hb,
+                                      self.model.n_anchors, self.rate_values_per_anchor)
+                if bpv is not None:
+                    terms["bpp"] = bpv
+                    terms["valid_share"] = res.valid_share
+                loss = loss + cfg.entropy.lmbda * rate
+                loss = loss + cfg.entropy.mask_lambda * torch.sigmoid(
+                    self.model.per_anchor["mask"]).mean()
+            ctx = {"render": out, "gaussians": g, "camera": cam, "gt": gt, "result": res}
+            for name, fn in self.extra_losses.items():
+                loss = loss + fn(ctx)
+        timer = active_timer()
+        if timer is not None:
+            timer.backward_started()
         loss.backward()
-        for h in self.hooks:
-            if hasattr(h, "after_backward"):
-                h.after_backward(it, ctx)
-        self.optimizer.step()
-        self.optimizer.zero_grad(set_to_none=True)
-        for h in self.hooks:
-            if hasattr(h, "after_step"):
-                h.after_step(it)
+        if timer is not None:
+            timer.backward_finished()
+        with stage("densify statistics"):
+            for h in self.hooks:
+                if hasattr(h, "after_backward"):
+                    h.after_backward(it, ctx)
+        with stage("optimizer"):
+            self.optimizer.step()
+            self.optimizer.zero_grad(set_to_none=True)
+        with stage("hooks after (growing, pruning)"):
+            for h in self.hooks:
+                if hasattr(h, "after_step"):
+                    h.after_step(it)
         with torch.no_grad():
             mse = ((out.image.detach().clamp(0, 1) - gt) ** 2).mean()
             terms["psnr"] = float(-10 * torch.log10(mse.clamp_min(1e-10)))
