@@ -100,6 +100,8 @@ class LRConfig:
     grid_final: float = 0.00001
     context_init: float = 0.005
     context_final: float = 0.00001
+    channel_init: float = 0.005          # HAC++'s channel context networks
+    channel_final: float = 0.0005
 
 
 @dataclass
@@ -516,6 +518,8 @@ LATER_KEYS = {("lr", "mask_schedule_scaled"): False,
               ("codec", "masks"): "bernoulli",
               ("codec", "grids"): "all",
               ("data", "near"): 0.2,
+              ("lr", "channel_init"): 0.005,
+              ("lr", "channel_final"): 0.0005,
               ("entropy", "rate_values_per_anchor"): 0}
 
 

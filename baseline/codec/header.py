@@ -309,7 +309,7 @@ def _check_attrs(v: Any, k: int, sections: dict) -> list:
 
 
 ENTROPY_KEYS = {"kind", "n_masks", "attrs", "hidden", "grid", "grid_options", "chunk",
-                "escape_limit", "pipeline"}
+                "escape_limit", "pipeline", "main", "n_chunks", "chunk_hidden"}
 
 
 def _check_entropy(v: Any, attrs: list, k: int) -> int:
@@ -347,10 +347,16 @@ def _check_entropy(v: Any, attrs: list, k: int) -> int:
         _int(e["escape_limit"], "entropy.escape_limit", 1, MAX_ESCAPE)
     if "pipeline" in e:
         _bool(e["pipeline"], "entropy.pipeline")
+    if "main" in e and _str(e["main"], "entropy.main") not in [a["name"] for a in attrs]:
+        raise _err("entropy.main", f"{e['main']!r:.60} is not a coded attribute")
+    if "n_chunks" in e:
+        _int(e["n_chunks"], "entropy.n_chunks", 1, 64)
+    if "chunk_hidden" in e:
+        _int(e["chunk_hidden"], "entropy.chunk_hidden", 1, MAX_HIDDEN)
     entries = 0
     for gk in ("grid", "grid_options"):
         if gk in e:
             entries += check_grid_options(e[gk], f"entropy.{gk}")
-    if kind == "hac" and not entries:
+    if kind in ("hac", "hacpp") and not entries:
         raise _err("entropy.grid", "HAC's entropy model needs its grid layout")
     return entries

@@ -194,7 +194,7 @@ class EntropyModel(nn.Module):
     def forward(self, xyz: torch.Tensor, values: Dict[str, torch.Tensor],
                 gauss_mask: Optional[torch.Tensor] = None, training: bool = True,
                 adaptive_q: bool = True, rate_rows: Optional[torch.Tensor] = None,
-                decoder_quant: str = "noise"):
+                decoder_quant: str = "noise", bit_weights: Optional[dict] = None):
         """Quantized values and per-anchor bits per attribute (see module docstring).
 
         ``adaptive_q=False`` uses the base step q0 (HAC's phase 3001..10000).
@@ -205,6 +205,8 @@ class EntropyModel(nn.Module):
         ``x + U(-.5,.5) Q`` ("noise", HAC) or the rounded values of evaluation with a
         straight-through gradient ("ste", :func:`baseline.hac.quant.ste_round_q`); the bits are
         estimated on the noisy values either way.
+        ``bit_weights`` {name: [N, d] float}: weigh those attributes' bits by these instead of
+        the Gaussian mask (a mask-training strategy's choice, e.g. HAC++'s anchor masks).
         """
         if decoder_quant not in ("noise", "ste"):
             raise ValueError(f"decoder_quant must be 'noise' or 'ste', got {decoder_quant!r}")
@@ -227,8 +229,11 @@ class EntropyModel(nn.Module):
             x_hat = noise_quantize(x, q) if training else ste_round(x, q, q0=a.q0)
             # training: the float straight-through mask weighs the bits (its gradient trains
             # the masks, as HAC's rate does); evaluation: the codec's boolean mask
-            m = (self.value_weights(a, gauss_mask, n) if training
-                 else self.value_mask(a, gauss_mask, n, device=x.device))
+            if bit_weights is not None and bit_weights.get(a.name) is not None:
+                m = bit_weights[a.name]
+            else:
+                m = (self.value_weights(a, gauss_mask, n) if training
+                     else self.value_mask(a, gauss_mask, n, device=x.device))
             if rate_rows is not None:
                 b = gaussian_bits(x_hat[rate_rows], mean, scale, q[rate_rows])
                 m = m[rate_rows] if m is not None else None
@@ -267,7 +272,7 @@ class EntropyModel(nn.Module):
                 sel = (x[m] if m is not None else x).to(torch.float64)
                 x_means[a.name] = sel.mean() if sel.numel() else torch.zeros((), dtype=torch.float64)
                 del sel
-            coders = {a.name: GaussianStreamEncoder(self.escape_limit) for a in self.attrs}
+            coders = {a.name: self._stream_encoder(a) for a in self.attrs}
             chunk = self.chunk
         else:
             coders, chunks = {}, set()
@@ -281,7 +286,7 @@ class EntropyModel(nn.Module):
                 chunks.add(ch)
                 if not 0 < limit <= MAX_ESCAPE:
                     raise BitstreamError(f"{a.name}: invalid escape limit {limit}")
-                coders[a.name] = GaussianStreamDecoder(blob[_BLOB_HDR.size:], what=a.name, escape_limit=limit)
+                coders[a.name] = self._stream_decoder(a, blob[_BLOB_HDR.size:], limit)
             chunk = chunks.pop()
             if chunks or not 0 < chunk <= MAX_CHUNK:
                 raise BitstreamError("attribute streams disagree on (or hold an invalid) chunk size")
@@ -290,9 +295,10 @@ class EntropyModel(nn.Module):
         ctx = self._exact_context()
 
         def model(s, e):
-            """Coding distribution of anchors s..e: per attribute (c, mu_s, sd_s, q) [n, d]."""
+            """Coding distribution of anchors s..e: per attribute (c, mu_s, sd_s, q) [n, d]
+            (the exact params under ``"__P__"`` for attributes coded their own way)."""
             P = self.params(xyz_cpu[s:e], exact=True, _ctx=ctx)
-            res = {}
+            res = {"__P__": P}
             for a in self.attrs:
                 mean, scale, q = P[a.name]
                 q = q.expand(-1, a.dims)
@@ -316,33 +322,12 @@ class EntropyModel(nn.Module):
                 else:
                     M = model(s, e)
                 for a in self.attrs:
-                    c, mu_s, sd_s, q = M[a.name]
                     m = masks[a.name]
                     msel = m[s:e] if m is not None else None
-
-                    def pick(t):
-                        return (t[msel] if msel is not None else t.reshape(-1)).numpy()
-
-                    if encode:
-                        x = xs[a.name][s:e].to(torch.float64)
-                        half = clamp_halfwidth(q, a.q0)
-                        lo = x_means[a.name] - half
-                        hi = x_means[a.name] + half
-                        k = torch.round(torch.maximum(torch.minimum(x, hi), lo) / q)
-                        if emit:
-                            coders[a.name].add(pick(k - c).astype(np.int64), pick(mu_s), pick(sd_s))
-                    else:
-                        sym = coders[a.name].decode(pick(mu_s), pick(sd_s))
-                        kk = torch.from_numpy(sym.astype(np.float64))
-                        if msel is not None:
-                            k = torch.zeros_like(c)
-                            k[msel] = kk + c[msel]
-                        else:
-                            k = kk.reshape(c.shape) + c
-                    xq = k * q
-                    if msel is not None:
-                        xq = torch.where(msel, xq, torch.zeros_like(xq))
-                    outs[a.name][s:e] = xq
+                    x = xs[a.name][s:e].to(torch.float64) if encode else None
+                    outs[a.name][s:e] = self._code_attr(
+                        a, M, x, msel, coders[a.name], encode, emit,
+                        x_means[a.name] if encode else None)
         finally:
             if pool:
                 pool.shutdown(wait=True, cancel_futures=True)
@@ -353,6 +338,42 @@ class EntropyModel(nn.Module):
         for a in self.attrs:
             coders[a.name].check_done()
         return values_q
+
+    # ------------------------------------------------- per-attribute coding (overridable)
+    def _stream_encoder(self, attr: CodedAttribute):
+        return GaussianStreamEncoder(self.escape_limit)
+
+    def _stream_decoder(self, attr: CodedAttribute, payload: bytes, limit: int):
+        return GaussianStreamDecoder(payload, what=attr.name, escape_limit=limit)
+
+    def _code_attr(self, a: CodedAttribute, M: dict, x, msel, coder, encode: bool, emit: bool,
+                   x_mean):
+        """Code (or decode) attribute ``a`` of one anchor chunk: ``M`` the chunk's model
+        (:meth:`_coding_pass`), ``x`` [n, d] float64 values when encoding, ``msel`` [n, d] bool
+        of the coded values (None: all). Returns the quantized values [n, d] float64, exactly
+        what the decoder returns. Default: one quantized Gaussian per value."""
+        c, mu_s, sd_s, q = M[a.name]
+
+        def pick(t):
+            return (t[msel] if msel is not None else t.reshape(-1)).numpy()
+
+        if encode:
+            half = clamp_halfwidth(q, a.q0)
+            k = torch.round(torch.maximum(torch.minimum(x, x_mean + half), x_mean - half) / q)
+            if emit:
+                coder.add(pick(k - c).astype(np.int64), pick(mu_s), pick(sd_s))
+        else:
+            sym = coder.decode(pick(mu_s), pick(sd_s))
+            kk = torch.from_numpy(sym.astype(np.float64))
+            if msel is not None:
+                k = torch.zeros_like(c)
+                k[msel] = kk + c[msel]
+            else:
+                k = kk.reshape(c.shape) + c
+        xq = k * q
+        if msel is not None:
+            xq = torch.where(msel, xq, torch.zeros_like(xq))
+        return xq
 
     @torch.no_grad()
     def quantize_for_coding(self, xyz, values, gauss_mask=None) -> Dict[str, torch.Tensor]:
@@ -553,7 +574,7 @@ class FactorizedEntropyModel(EntropyModel):
             raise BitstreamError(f"entropy model weights do not fit the model: {e}") from None
 
 
-ENTROPY_MODELS = {"hac": HACEntropyModel, "factorized": FactorizedEntropyModel}
+ENTROPY_MODELS = {"hac": HACEntropyModel, "factorized": FactorizedEntropyModel}  # + registry
 
 
 def build_entropy_model(config: dict, **overrides) -> EntropyModel:

@@ -81,12 +81,16 @@ class _FixedLayer:
     w_frac: int          # weights are W * 2^w_frac
     in_frac: int         # inputs are a * 2^in_frac
     relu: bool
+    slope: float         # 0 for ReLU; LeakyReLU's negative slope otherwise
     out_frac_next: int   # fractional bits of the requantised output (hidden layers)
     bound: int           # static bound of |output| in integer units (before requantisation)
 
 
 class ExactMLP:
-    """Exact fixed-point evaluation of an ``nn.Sequential`` of ``Linear`` and ``ReLU`` layers.
+    """Exact fixed-point evaluation of an ``nn.Sequential`` of ``Linear`` and ``ReLU`` (or
+    ``LeakyReLU``) layers. A LeakyReLU multiplies the exact negative integer sums by its slope
+    (one correctly rounded multiplication) before the requantisation's rounding: deterministic,
+    and bounded by the ReLU-free bound.
 
     Build once from the (stored-precision) module, then call on integer inputs:
 
@@ -109,8 +113,11 @@ class ExactMLP:
         while i < len(mods):
             lin = mods[i]
             if not isinstance(lin, nn.Linear):
-                raise TypeError(f"ExactMLP supports Linear/ReLU stacks, got {type(lin).__name__}")
-            relu = i + 1 < len(mods) and isinstance(mods[i + 1], nn.ReLU)
+                raise TypeError(f"ExactMLP supports Linear/(Leaky)ReLU stacks, got "
+                                f"{type(lin).__name__}")
+            act = mods[i + 1] if i + 1 < len(mods) else None
+            relu = isinstance(act, (nn.ReLU, nn.LeakyReLU))
+            slope = float(act.negative_slope) if isinstance(act, nn.LeakyReLU) else 0.0
             i += 2 if relu else 1
             W = lin.weight.detach().to("cpu", torch.float64)
             b = (lin.bias.detach().to("cpu", torch.float64) if lin.bias is not None
@@ -139,7 +146,7 @@ class ExactMLP:
                 out_frac = hidden_bits - (_exponent(real_bound) if real_bound > 0 else 0)
             else:
                 out_frac = 0
-            self.layers.append(_FixedLayer(Wi, bi, w_frac, a_frac, relu, out_frac, bound))
+            self.layers.append(_FixedLayer(Wi, bi, w_frac, a_frac, relu, slope, out_frac, bound))
             if not is_last:
                 a_bits, a_frac = hidden_bits, out_frac
         self.in_bits = int(in_bits)
@@ -151,8 +158,10 @@ class ExactMLP:
         n = len(self.layers)
         for j, L in enumerate(self.layers):
             y = torch.addmm(L.b, h, L.w.T)  # exact: every partial sum is an integer < 2^53
-            if L.relu:
+            if L.relu and L.slope == 0.0:
                 y.clamp_(min=0.0)
+            elif L.relu:
+                y = torch.where(y < 0, y * L.slope, y)
             scale = L.w_frac + L.in_frac
             if j + 1 < n:
                 h = y.mul_(ldexp(1.0, L.out_frac_next - scale)).round_()  # power of 2: exact

@@ -43,19 +43,25 @@ def build_entropy(cfg: Config, model: AnchorModel):
     """The configured entropy model, its head sized from the provider's coded attributes."""
     cls = registry.get("entropy_model", cfg.entropy.model)
     attrs = model.coded_attributes()
-    if cfg.entropy.model == "hac":
+    if cfg.entropy.model in ("hac", "hacpp"):
         return cls(attrs, model.n_offsets, grid_options=grid_options(cfg.entropy.grid, model.n_anchors),
                    hidden=cfg.entropy.context_hidden)
     return cls(attrs, model.n_offsets)
 
 
 def entropy_param_groups(cfg: Config, entropy) -> list[dict]:
-    """Adam groups of an entropy model: hash-grid tables at the grid rate, the rest (context MLP,
-    factorized densities) at the context rate."""
-    grid, rest = [], []
+    """Adam groups of an entropy model: hash-grid tables at the grid rate, HAC++'s channel
+    context networks at theirs, the rest (context MLP / hyperprior, factorized densities) at the
+    context rate."""
+    grid, channel, rest = [], [], []
     for name, p in entropy.named_parameters():
-        (grid if name.startswith("grid.") else rest).append(p)
+        (grid if name.startswith("grid.") else channel if name.startswith("ctx.")
+         else rest).append(p)
     lr = cfg.lr
-    return [dict(name="entropy_grid", params=grid, lr_init=lr.grid_init, lr_final=lr.grid_final),
-            dict(name="entropy_context", params=rest, lr_init=lr.context_init,
-                 lr_final=lr.context_final)]
+    groups = [dict(name="entropy_grid", params=grid, lr_init=lr.grid_init, lr_final=lr.grid_final),
+              dict(name="entropy_context", params=rest, lr_init=lr.context_init,
+                   lr_final=lr.context_final)]
+    if channel:                       # HAC++'s channel context networks (their own schedule)
+        groups.append(dict(name="entropy_channel", params=channel, lr_init=lr.channel_init,
+                           lr_final=lr.channel_final))
+    return groups
