@@ -235,7 +235,10 @@ def cmd_bench(args) -> int:
     elif args.what == "codec":
         from baseline.codec.bench import format_codec_bench, run_codec_bench, run_model_codec_bench
 
-        rows = run_codec_bench(n_anchors=args.anchors or 500_000, threads=args.threads or 0)
+        rows = []
+        for model in (args.model or ["hac", "hacpp"]):
+            rows += run_codec_bench(n_anchors=args.anchors or 500_000, model=model,
+                                    threads=args.threads or 0)
         rows += [run_model_codec_bench(r) for r in args.run]
         print(format_codec_bench(rows))
     elif args.what == "grid":
@@ -419,6 +422,9 @@ def main(argv=None) -> int:
                    help="fps / frame: the scene (default: the one each file names in its header)")
     p.add_argument("--views", type=int, default=None, help="fps / frame: time only the first N views")
     p.add_argument("--device", default="cpu", help="fps / frame: cpu | cuda | cuda:N | auto")
+    p.add_argument("--model", action="append", default=None,
+                   choices=["hac", "hacpp", "factorized"],
+                   help="codec: entropy model(s) of the synthetic payload (default hac and hacpp)")
     p.add_argument("--steps", type=int, default=10,
                    help="train: timed training steps per run (after 2 untimed)")
     p.set_defaults(fn=cmd_bench)

@@ -92,6 +92,11 @@ class LRConfig:
     mlp_color_final: float = 0.00005
     mask_init: float = 0.01              # x scene extent
     mask_final: float = 0.0001
+    # HAC++ mask training (entropy.mask_training = "hacpp"): the final mask lr is
+    # min(mask_final_per_mlambda x lambda / 1e-3, mask_final_cap) x extent (cap 0: none);
+    # HAC++'s Tanks&Temples value 1e-4, the dataset patches set the others
+    mask_final_per_mlambda: float = 0.0001
+    mask_final_cap: float = 0.0
     # x schedule_base / iterations: a mask logit must travel a fixed distance (init 1 -> below
     # logit(0.01) = -4.6) to switch a Gaussian off, and Adam moves it at most ~lr per step, so a
     # short schedule at the paper's lr cannot switch off what the paper's can (patch masks-lr-scaled)
@@ -156,6 +161,10 @@ class EntropyConfig:
     # same for both). lambda only moves a method along its own curve: compare methods by
     # BD-rate, never at equal lambda.
     rate_values_per_anchor: int = 0
+    # how the Gaussian masks train: "hac" (the mask loss; the rate on visible valid anchors) or
+    # "hacpp" (HAC++: the rate alone, over all anchors, masks applied after the opacity
+    # selection; baseline/train/masks.py, patch masks-hacpp)
+    mask_training: str = "hac"
     context_hidden: int = 100
     position_bits: int = 16
     grid: GridConfig = field(default_factory=GridConfig)
@@ -414,6 +423,9 @@ def validate(cfg: Config) -> None:
     dev = cfg.train.device
     if not (dev in ("auto", "cpu", "cuda") or re.fullmatch(r"cuda:\d+", dev)):
         raise ConfigError(f"train.device must be auto, cpu, cuda or cuda:N, got '{dev}'")
+    if cfg.entropy.mask_training not in ("hac", "hacpp"):
+        raise ConfigError(f"entropy.mask_training must be 'hac' or 'hacpp', got "
+                          f"'{cfg.entropy.mask_training}'")
     if cfg.entropy.decoder_quant not in ("noise", "ste"):
         raise ConfigError(f"entropy.decoder_quant must be 'noise' or 'ste', got "
                           f"'{cfg.entropy.decoder_quant}'")
@@ -519,6 +531,9 @@ LATER_KEYS = {("lr", "mask_schedule_scaled"): False,
               ("codec", "grids"): "all",
               ("data", "near"): 0.2,
               ("lr", "channel_init"): 0.005,
+              ("lr", "mask_final_per_mlambda"): 0.0001,
+              ("lr", "mask_final_cap"): 0.0,
+              ("entropy", "mask_training"): "hac",
               ("lr", "channel_final"): 0.0005,
               ("entropy", "rate_values_per_anchor"): 0}
 

@@ -5,6 +5,7 @@ Kinds of components (extend freely):
     ``refiner``           additive corrections of decoded Gaussians (baseline: ``none``)
     ``entropy_model``     rate model + coder of the coded attributes (``hac``, ``factorized``)
     ``hooks``             training hook sets (``scaffold_densify``, ``hac_phases``, ...)
+    ``mask_training``     how the Gaussian masks train (``hac``, ``hacpp``)
     ``rasterizer``        rasterizer backends (``cpu``, ``gsplat``, ``reference``)
     ``config_section``    extra config dataclasses contributed by plugins (section name -> class)
 

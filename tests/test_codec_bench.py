@@ -24,3 +24,10 @@ def test_bench_small():
     # side information) a smaller file than HAC's on this small, context-poor random payload
     assert not any(k.startswith("em.grid") for k in fac["bytes"]) and fac["bytes"]["masks"] > 0
     assert fac["total_mb"] < hac["total_mb"]
+
+
+def test_bench_hacpp_beside_hac():
+    rows = run_codec_bench(n_anchors=2000, model="hacpp", threads=1)
+    assert [r["variant"] for r in rows] == ["reference", "fast"] and all(r["exact"] for r in rows)
+    assert rows[0]["bytes"] == rows[1]["bytes"] and "em.ctx" in rows[1]["bytes"]
+    assert "hacpp" in format_codec_bench(rows)

@@ -1,7 +1,8 @@
 """Codec benchmark: encode / decode time and throughput of the entropy-coding path.
 
 ``pgs bench codec [--anchors N] [--threads T] [--run RUN]...``
-(= ``python -m baseline.codec.bench``, which also takes ``--model hac|factorized``)
+(= ``python -m baseline.codec.bench``, which also takes ``--model hac|hacpp|factorized``;
+``pgs bench codec`` runs ``hac`` and ``hacpp`` side by side, or ``--model M`` repeated)
 
 Measures, for a synthetic payload shaped like an average Mip-NeRF360 HAC model (feat 50,
 scaling 6 post-exp, offsets 30 gated by 10 Gaussian masks about half on): the hash-grid context
@@ -51,6 +52,7 @@ def _calibrate(model, values, mask) -> None:
     with torch.no_grad():
         last = model.mlp[-1]
         off = 0
+        main = getattr(model, "main", None)          # HAC++: mean, scale, logit for the main
         for a in model.attrs:
             x = values[a.name]
             if a.masked:
@@ -61,7 +63,7 @@ def _calibrate(model, values, mask) -> None:
                 std, mu = x.std(0), x.mean(0)
             last.bias[off:off + a.dims] = mu
             last.bias[off + a.dims:off + 2 * a.dims] = std
-            off += 2 * a.dims
+            off += (3 if a.name == main else 2) * a.dims
 
 
 VARIANTS = ("reference", "fast")
@@ -118,7 +120,7 @@ def _run_codec_bench(n_anchors: int, model: str, seed: int, repeats: int,
     cls = registry.get("entropy_model", model)
     em = cls(attrs, 10)
     xyz, values, mask = synthetic_payload(n_anchors, seed=seed)
-    if model == "hac":
+    if model in ("hac", "hacpp"):
         lo, hi = xyz.min(0).values, xyz.max(0).values
         em.set_bounds(lo - 0.1 * (hi - lo), hi + 0.1 * (hi - lo))
         _calibrate(em, values, mask)
@@ -219,7 +221,7 @@ def format_codec_bench(rows: List[Dict]) -> str:
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--anchors", type=int, default=500_000)
-    ap.add_argument("--model", default="hac", choices=["hac", "factorized"])
+    ap.add_argument("--model", default="hac", choices=["hac", "hacpp", "factorized"])
     ap.add_argument("--threads", type=int, default=0, help="torch threads (0: leave as is)")
     ap.add_argument("--repeats", type=int, default=1)
     ap.add_argument("--run", action="append", default=[], help="also a trained run folder")

@@ -126,6 +126,9 @@ class AnchorModel(nn.Module):
         self.cfg = cfg_model
         self.mask_threshold = mask_threshold
         self.fixed_values: Optional[dict[str, torch.Tensor]] = None
+        # training only: masks multiply opacity and scale after the opacity > 0 selection
+        # (HAC++) instead of the opacity before it (HAC); set by the mask-training strategy
+        self.mask_after_selection = False
         self.baked = None           # BakedDecoder of a decoded model (bake()), used to render
         self.per_anchor = nn.ParameterDict()
         self.grow_rules: dict[str, Optional[GrowRule]] = {}
@@ -254,7 +257,10 @@ class AnchorModel(nn.Module):
         values, xyz, raw_op, raw_cov, raw_col = self.raw_heads(cam_center, idx, values, xyz)
         M, K = len(idx), self.n_offsets
         gmask = self.gaussian_mask(idx)                             # [M,K]
-        opacity = torch.tanh(raw_op) * gmask                        # [M,K]
+        after = self.mask_after_selection and torch.is_grad_enabled()
+        # HAC: the mask multiplies the opacity before the selection (a masked Gaussian is not
+        # drawn); HAC++ (training): it multiplies opacity and scale of the selected ones
+        opacity = torch.tanh(raw_op) if after else torch.tanh(raw_op) * gmask      # [M,K]
         sel = (opacity > 0).reshape(-1)                             # [M*K]
         # The kept Gaussians are chosen first and only their attributes are activated: the
         # same per-element arithmetic as activating all M*K candidates and selecting after,
@@ -264,9 +270,13 @@ class AnchorModel(nn.Module):
         scaling = values["scaling"][row]                            # [G,6] activated
         offsets = values["offsets"].reshape(M * K, 3)[keep] * scaling[:, :3]
         means = xyz[row] + offsets
+        opacities, scales_base = opacity.reshape(-1)[keep], scaling[:, 3:]
+        if after:
+            gk = gmask.reshape(-1)[keep]
+            opacities, scales_base = opacities * gk, scales_base * gk[:, None]
         return kept_gaussians(means=means, cov=raw_cov.reshape(M * K, 7)[keep],
                               raw_color=raw_col.reshape(M * K, 3)[keep],
-                              opacities=opacity.reshape(-1)[keep], scales_base=scaling[:, 3:],
+                              opacities=opacities, scales_base=scales_base,
                               anchor_index=idx[row], selection=sel, opacity_all=opacity,
                               idx=idx, n_anchors=self.n_anchors, visible=visible)
 

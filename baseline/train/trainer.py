@@ -32,7 +32,7 @@ from baseline.pipeline import render_view
 from baseline.scaffold.build import build_entropy, build_model, entropy_param_groups
 from baseline.timing import active as active_timer
 from baseline.timing import stage
-from baseline.train.losses import lr_exp, rate_term, reconstruction_loss
+from baseline.train.losses import lr_exp, reconstruction_loss
 
 CHECKPOINT_NAME = "checkpoint.pt"
 TRAIN_LOG_NAME = "train_log.jsonl"
@@ -119,6 +119,8 @@ class Trainer:
                                else make_generator(cfg.train.seed + 1, self.device))
         self.model, self.voxel_size = build_model(cfg, scene.points)
         self.entropy = build_entropy(cfg, self.model)
+        self.mask_training = registry.get("mask_training", cfg.entropy.mask_training)(self)
+        self.model.mask_after_selection = self.mask_training.mask_after_selection
         self.model.to(self.device)
         self.entropy.to(self.device)
         self.extent = float(scene.extent)
@@ -161,13 +163,14 @@ class Trainer:
     def _param_groups(self) -> list[dict]:
         cfg, lr, ext = self.cfg, self.cfg.lr, self.extent
         mask_ext = ext * self._mask_lr_scale()
+        mask_final = self.mask_training.mask_lr_final(cfg, mask_ext)
         m = self.model
         groups = [
             dict(name="offsets", params=[m.per_anchor["offsets"]], lr_init=lr.offset_init * ext,
                  lr_final=lr.offset_final * ext),
             dict(name="scaling", params=[m.per_anchor["scaling"]], lr_init=lr.scaling, lr_final=lr.scaling),
             dict(name="mask", params=[m.per_anchor["mask"]], lr_init=lr.mask_init * mask_ext,
-                 lr_final=lr.mask_final * mask_ext),
+                 lr_final=lr.mask_final * mask_ext if mask_final is None else mask_final),
             dict(name="mlp_opacity", params=list(m.decoder.mlp_opacity.parameters()),
                  lr_init=lr.mlp_opacity_init, lr_final=lr.mlp_opacity_final),
             dict(name="mlp_cov", params=list(m.decoder.mlp_cov.parameters()), lr_init=lr.mlp_cov,
@@ -225,7 +228,8 @@ class Trainer:
                     align_corners=False, antialias=False)[0].permute(1, 2, 0)
                 cam = cam_r
         res = render_view(self.model, cam, self.background, phase=self.phase, training=True,
-                          entropy=self.entropy, rate_sample=cfg.entropy.rate_sample,
+                          entropy=self.entropy,
+                          rate_sample=self.mask_training.render_rate_sample,
                           backend=cfg.train.rasterizer, generator=self.step_generator,
                           decoder_quant=cfg.entropy.decoder_quant)
         g, out = res.gaussians, res.render
@@ -236,18 +240,11 @@ class Trainer:
             terms = {"l1": float(l1.detach())}
             if g.scales.shape[0] > 0 and cfg.train.lambda_volume > 0:
                 loss = loss + cfg.train.lambda_volume * g.scales.prod(dim=1).mean()
-            if self.phase == "adaptive":
-                hb = self.entropy.hash_bits()
-                if hasattr(self.model.provider, "rate_bits"):   # e.g. Predict-GS's SFP grid
-                    hb = hb + self.model.provider.rate_bits()
-                rate, bpv = rate_term(res.bits, res.n_rate_anchors, res.valid_share, hb,
-                                      self.model.n_anchors, self.rate_values_per_anchor)
-                if bpv is not None:
-                    terms["bpp"] = bpv
-                    terms["valid_share"] = res.valid_share
-                loss = loss + cfg.entropy.lmbda * rate
-                loss = loss + cfg.entropy.mask_lambda * torch.sigmoid(
-                    self.model.per_anchor["mask"]).mean()
+            if self.phase == "adaptive":        # the rate and the masks' training
+                parts, logged = self.mask_training.loss(res)
+                for p in parts:
+                    loss = loss + p
+                terms.update(logged)
             ctx = {"render": out, "gaussians": g, "camera": cam, "gt": gt, "result": res}
             for name, fn in self.extra_losses.items():
                 loss = loss + fn(ctx)
