@@ -299,6 +299,32 @@ def cmd_compare(args) -> int:
     return 0
 
 
+def cmd_benchmark(args) -> int:
+    """One comparison per scene of a dataset, on an executor; the dataset's report."""
+    from baseline.eval.benchmark import run_benchmark
+
+    sets = list(args.set)
+    if args.resolution is not None:
+        sets.append(f"data.resolution={args.resolution}")
+    if args.images:
+        sets.append(f'data.images="{args.images}"')
+    if args.iterations is not None:
+        sets.append(f"train.iterations={args.iterations}")
+    opts = {"retries": args.retries}
+    if args.executor == "local":
+        opts["jobs"] = args.jobs
+    else:
+        opts.update(address=args.address, cpus_per_run=args.cpus_per_run,
+                    gpus_per_run=args.gpus_per_run)
+    scenes = [s for s in (args.scenes or "").split(",") if s] or None
+    res = run_benchmark(args.root, args.out, vs=args.vs, lambdas=args.lambdas, seeds=args.seeds,
+                        scenes=scenes, protocol=args.protocol, common_patches=args.patch,
+                        sets=sets, executor=args.executor, executor_options=opts,
+                        lpips_weights=args.lpips_weights, plots=not args.no_plots,
+                        progress=not args.no_progress)
+    return 0 if not res["failed"] else 1
+
+
 def cmd_demo(args) -> int:
     """The main job on the embedded default scene: baseline (HAC) vs Predict-GS, side by side."""
     from baseline.data.synthetic import make_scene
@@ -473,6 +499,32 @@ def main(argv=None) -> int:
                         "to report those runs without retraining)")
     _config_args(p)
     p.set_defaults(fn=cmd_compare)
+
+    p = sub.add_parser("benchmark", help="one comparison per scene of a dataset (on this machine "
+                       "or a Ray cluster) and the dataset's tables")
+    p.add_argument("root", help="folder holding the scene folders")
+    p.add_argument("--scenes", default=None, help="comma-separated scene names (default: all)")
+    p.add_argument("--protocol", default=None,
+                   choices=["mip360", "tandt", "deepblending", "nerf-synthetic"],
+                   help="the dataset's HAC protocol patch")
+    p.add_argument("--vs", action="append", default=[], metavar="P1[+P2...]")
+    p.add_argument("--lambda", dest="lambdas", type=float, nargs="+", default=None, metavar="L")
+    p.add_argument("--seeds", type=int, nargs="+", default=None, metavar="S")
+    p.add_argument("--out", required=True, help="benchmark folder (on Ray: a path every node sees)")
+    p.add_argument("--executor", default="local", choices=["local", "ray"])
+    p.add_argument("--jobs", type=int, default=1,
+                   help="local: runs at a time, each in its own process with its share of the cores")
+    p.add_argument("--address", default=None,
+                   help="ray: the cluster ('auto' or HOST:PORT); default: a local Ray for this call")
+    p.add_argument("--cpus-per-run", type=int, default=1, help="ray: CPUs each run asks for")
+    p.add_argument("--gpus-per-run", type=float, default=0,
+                   help="ray: GPUs each run asks for (1 on a GPU cluster)")
+    p.add_argument("--retries", type=int, default=2, help="attempts after a failure, per run")
+    p.add_argument("--lpips-weights", default=None)
+    p.add_argument("--no-progress", action="store_true")
+    p.add_argument("--no-plots", action="store_true")
+    _config_args(p)
+    p.set_defaults(fn=cmd_benchmark)
 
     p = sub.add_parser("demo", help="the main job: baseline vs Predict-GS on the embedded scene")
     p.add_argument("--out", default="runs/demo")

@@ -6,6 +6,7 @@ Kinds of components (extend freely):
     ``entropy_model``     rate model + coder of the coded attributes (``hac``, ``factorized``)
     ``hooks``             training hook sets (``scaffold_densify``, ``hac_phases``, ...)
     ``mask_training``     how the Gaussian masks train (``hac``, ``hacpp``)
+    ``executor``          where a benchmark's runs execute (``local``, ``ray``)
     ``rasterizer``        rasterizer backends (``cpu``, ``gsplat``, ``reference``)
     ``config_section``    extra config dataclasses contributed by plugins (section name -> class)
 
@@ -29,6 +30,7 @@ _BUILTIN_MODULES = (
     "baseline.scaffold",
     "baseline.hac",
     "baseline.train",
+    "baseline.eval.executors",
 )
 
 

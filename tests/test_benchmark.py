@@ -1,0 +1,87 @@
+"""`pgs benchmark`: a tiny dataset (two procedural scenes) on the local executor and on a real
+local Ray cluster: the same records, a killed worker's run retried, a rerun that trains nothing,
+the dataset's tables and survey CSVs."""
+from __future__ import annotations
+
+import csv
+import os
+
+import pytest
+
+from baseline.data.synthetic import make_scene
+from baseline.eval.benchmark import benchmark_records, run_benchmark
+
+SETS = ["train.iterations=200", "train.log_every=1000", "model.voxel_size=0.05"]
+COMMON = ["demo"]
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory):
+    root = tmp_path_factory.mktemp("dataset")
+    for name, seed in (("alpha", 1), ("beta", 2)):
+        make_scene(root / name, n_views=8, width=40, height=30, seed=seed, n_points=300)
+    (root / "notes").mkdir()                       # not a scene: ignored
+    return root
+
+
+def _bench(dataset, out, executor, **opts):
+    return run_benchmark(dataset, out, vs=["predict-gs"], lambdas=[0.004], common_patches=COMMON,
+                         sets=SETS, executor=executor, executor_options=opts, plots=False,
+                         progress=False, echo=False)
+
+
+@pytest.fixture(scope="module")
+def local_run(dataset, tmp_path_factory):
+    out = tmp_path_factory.mktemp("bench_local")
+    return out, _bench(dataset, out, "local", jobs=2)
+
+
+def test_local_benchmark_tables_and_csvs(local_run):
+    out, res = local_run
+    assert res["complete"] and res["jobs_run"] == 4 and not res["failed"]
+    assert res["scenes"] == ["alpha", "beta"]
+    rows = {(r["method"], r["lmbda"]): r for r in res["table"]}
+    assert set(rows) == {("baseline", 0.004), ("predict-gs", 0.004)}
+    for r in rows.values():
+        assert r["n_scenes"] == 2 and 0 < r["psnr"] < 60 and r["mb"] > 0
+        assert r["others_mb"] == pytest.approx(r["mb"] - r["feature_mb"])
+    for scene in ("alpha", "beta"):
+        with open(out / "survey" / "dataset0" / f"{scene}.csv") as f:
+            assert len(list(csv.DictReader(f))) == 2
+        assert (out / scene / "report.md").exists()
+    # the mean is the mean of the scenes' own results
+    import json
+    per = [json.loads((out / s / "results.json").read_text()) for s in ("alpha", "beta")]
+    base = [next(r for r in p["runs"] if r["method"] == "baseline") for p in per]
+    assert rows[("baseline", 0.004)]["psnr"] == pytest.approx(sum(b["psnr"] for b in base) / 2)
+    md = (out / "report.md").read_text()
+    assert "Mean over the scenes" in md and "BD-rate" in md
+
+
+def test_ray_benchmark_equals_local_retries_killed_workers_and_resumes(dataset, local_run,
+                                                                         tmp_path, monkeypatch):
+    pytest.importorskip("ray", reason="Ray is not installed (pip install -e .[cluster])")
+    out_local, _ = local_run
+    out = tmp_path / "bench_ray"
+    kills = tmp_path / "kills"
+    kills.mkdir()
+    monkeypatch.setenv("PGS_TEST_KILL_ONCE", str(kills))     # every run's first worker dies
+    res = _bench(dataset, out, "ray", num_cpus=2, cpus_per_run=1, retries=2)
+    assert not res["failed"] and res["jobs_run"] == 4 and res["complete"]
+    assert len(os.listdir(kills)) == 4                        # each was killed once, and retried
+    a, b = benchmark_records(out_local), benchmark_records(out)
+    assert a and a == b                                       # the same records on both executors
+    monkeypatch.delenv("PGS_TEST_KILL_ONCE")
+    again = _bench(dataset, out, "ray", num_cpus=2, cpus_per_run=1)
+    assert again["jobs_run"] == 0 and again["complete"]        # a rerun trains nothing
+
+
+def test_a_run_that_keeps_failing_is_reported_by_name(dataset, tmp_path):
+    """A run that fails on every attempt is reported with its name and error, not dropped."""
+    from baseline.eval.executors import Job, LocalExecutor
+    bad = Job(scene=str(dataset / "alpha"), out=str(tmp_path / "x"), method="baseline",
+              method_patches=(), lmbda=0.004, seed=None, common_patches=("demo",),
+              sets=("train.iterations=5", "data.images=\"nosuch\""), label="alpha: broken")
+    r = LocalExecutor(retries=1, progress=False).execute([bad])
+    assert r["done"] == [] and r["failed"][0][0] == "alpha: broken"
+    assert "nosuch" in r["failed"][0][1]
