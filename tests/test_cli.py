@@ -149,7 +149,9 @@ def test_bench_codec_with_a_trained_run(trained, capsys):
     assert main(["bench", "codec", "--anchors", "2000", "--threads", "1", "--run", str(run)]) == 0
     out = capsys.readouterr().out
     lines = [ln for ln in out.splitlines() if ln.startswith(("reference", "fast", "run"))]
-    assert [ln.split()[0] for ln in lines] == ["reference", "fast", "run"]
+    assert [ln.split()[:2] for ln in lines] == [["reference", "hac"], ["fast", "hac"],
+                                                  ["reference", "hacpp"], ["fast", "hacpp"],
+                                                  ["run", "run"]]
     assert all(ln.rstrip().endswith("True") for ln in lines)     # every decode exact
     assert str(run) in out
 
