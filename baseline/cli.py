@@ -24,9 +24,9 @@ def _config_args(p: argparse.ArgumentParser) -> None:
                    help="auto | cpu | cuda | cuda:N: shortcut for --set train.device=...")
 
 
-def _build_cfg(args):
-    from baseline.config import build_config
-
+def _config_sets(args) -> list:
+    """``--set`` overrides followed by the shortcut options' (-r, --images, --iterations,
+    --device)."""
     sets = list(args.set)
     if getattr(args, "resolution", None) is not None:
         sets.append(f"data.resolution={args.resolution}")
@@ -36,7 +36,13 @@ def _build_cfg(args):
         sets.append(f"train.iterations={args.iterations}")
     if getattr(args, "device", None):
         sets.append(f'train.device="{args.device}"')
-    return build_config(args.patch, sets)
+    return sets
+
+
+def _build_cfg(args):
+    from baseline.config import build_config
+
+    return build_config(args.patch, _config_sets(args))
 
 
 def cmd_config(args) -> int:
@@ -272,13 +278,7 @@ def cmd_compare(args) -> int:
     """Side by side: the baseline and each --vs method at each lambda; report + plots."""
     from baseline.eval.compare import run_compare
 
-    sets = list(args.set)
-    if args.resolution is not None:
-        sets.append(f"data.resolution={args.resolution}")
-    if args.images:
-        sets.append(f'data.images="{args.images}"')
-    if args.iterations is not None:
-        sets.append(f"train.iterations={args.iterations}")
+    sets = _config_sets(args)
     try:
         results = run_compare(args.scene, args.out, vs=args.vs, lambdas=args.lambdas,
                               common_patches=args.patch, sets=sets,
@@ -303,13 +303,7 @@ def cmd_benchmark(args) -> int:
     """One comparison per scene of a dataset, on an executor; the dataset's report."""
     from baseline.eval.benchmark import run_benchmark
 
-    sets = list(args.set)
-    if args.resolution is not None:
-        sets.append(f"data.resolution={args.resolution}")
-    if args.images:
-        sets.append(f'data.images="{args.images}"')
-    if args.iterations is not None:
-        sets.append(f"train.iterations={args.iterations}")
+    sets = _config_sets(args)
     opts = {"retries": args.retries}
     if args.executor == "local":
         opts["jobs"] = args.jobs

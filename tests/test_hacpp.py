@@ -63,7 +63,6 @@ def test_mixture_sums_to_one_and_matches_the_components():
     ks = torch.arange(-200, 201, dtype=torch.float64)[:, None]
     x = ks * q                                      # every bin, [401, n]
     p = torch.softmax(torch.stack([l1, l2], -1), -1)
-    from baseline.hac.entropy import gaussian_likelihood
     raw = (p[..., 0] * (torch.special.ndtr((x + 0.35 - m1) / s1) - torch.special.ndtr((x - 0.35 - m1) / s1))
            + p[..., 1] * (torch.special.ndtr((x + 0.35 - m2) / s2) - torch.special.ndtr((x - 0.35 - m2) / s2)))
     assert torch.allclose(raw.sum(0), torch.ones(n, dtype=torch.float64), atol=1e-12)

@@ -25,12 +25,12 @@ i32 smin, i32 smax) | escapes x i64 | range-coder bytes``.
 """
 from __future__ import annotations
 
-import struct
 from pathlib import Path
 
 import numpy as np
 from numba import njit
 
+from baseline.codec.chunked import ChunkReader, ChunkWriter
 from baseline.codec.container import BitstreamError
 
 PHI_TABLE = np.load(Path(__file__).resolve().parent / "phi_table.npy")
@@ -38,8 +38,6 @@ PREC = 16
 TOTAL = 1 << PREC
 W_ONE = 4096
 _TAG = b"M1"
-_HDR = struct.Struct("<2sII")
-_CHUNK = struct.Struct("<Iii")
 _TOP = 1 << 24
 _MASK32 = 0xFFFFFFFF
 Z_STEP = 1 << 20            # z is rounded to 2^-20
@@ -198,9 +196,7 @@ class MixtureStreamEncoder:
 
     def __init__(self, escape_limit: int = 16383):
         self.limit = int(escape_limit)
-        self._chunks: list = []
-        self._escapes: list = []
-        self._parts: list = []
+        self._table = ChunkWriter(self.limit)
         self._st = np.array([0, _MASK32, 0, 1, 0], dtype=np.int64)
         self._buf = np.zeros(1024, dtype=np.int64)
 
@@ -208,15 +204,10 @@ class MixtureStreamEncoder:
         s = np.asarray(symbols, dtype=np.int64).reshape(-1)
         n = s.size
         if n == 0:
-            self._chunks.append((0, 0, 0))
+            self._table.add(s)
             return
         m1, s1, m2, s2, w = _params(m1, s1, m2, s2, w1, n)
-        esc = np.abs(s) > self.limit
-        if esc.any():
-            self._escapes.append(s[esc])
-            s = np.clip(s, -self.limit - 1, self.limit + 1)
-        smin, smax = int(s.min()), int(s.max())
-        self._chunks.append((n, smin, smax))
+        s, smin, smax = self._table.add(s)
         if smin == smax:
             return
         need = int(self._st[4]) + 2 * n + 64
@@ -231,12 +222,7 @@ class MixtureStreamEncoder:
             self._buf = np.concatenate([self._buf, np.zeros(16, np.int64)])
         _flush(self._st, self._buf)
         payload = self._buf[:self._st[4]].astype(np.uint8).tobytes()
-        esc = np.concatenate(self._escapes) if self._escapes else np.zeros(0, np.int64)
-        parts = [_HDR.pack(_TAG, len(self._chunks), int(esc.size))]
-        parts += [_CHUNK.pack(*c) for c in self._chunks]
-        parts.append(esc.astype("<i8").tobytes())
-        parts.append(payload)
-        return b"".join(parts)
+        return self._table.pack(_TAG, payload)
 
 
 class MixtureStreamDecoder:
@@ -245,39 +231,18 @@ class MixtureStreamDecoder:
 
     def __init__(self, blob, what: str = "mixture", escape_limit: int = 16383):
         blob = bytes(blob)
-        self.what, self.limit = what, int(escape_limit)
-        if len(blob) < _HDR.size:
-            raise BitstreamError(f"{what}: truncated mixture stream header")
-        tag, n_chunks, n_esc = _HDR.unpack_from(blob)
-        if tag != _TAG:
-            raise BitstreamError(f"{what}: not a mixture stream")
-        off = _HDR.size
-        if n_chunks * _CHUNK.size + 8 * n_esc > len(blob) - off:
-            raise BitstreamError(f"{what}: chunk table ({n_chunks} chunks, {n_esc} escapes) "
-                                 f"exceeds the {len(blob)}-byte stream")
-        self.chunks = [_CHUNK.unpack_from(blob, off + i * _CHUNK.size) for i in range(n_chunks)]
-        off += n_chunks * _CHUNK.size
-        self.escapes = np.frombuffer(blob, dtype="<i8", count=n_esc, offset=off).astype(np.int64)
-        off += 8 * n_esc
-        for n, smin, smax in self.chunks:
-            if n and not (-self.limit - 1 <= smin <= smax <= self.limit + 1):
-                raise BitstreamError(f"{what}: invalid symbol range [{smin}, {smax}]")
+        self.what = what
+        self._table = ChunkReader(blob, _TAG, what, escape_limit, "mixture")
+        off = self._table.payload_offset
         self.data = np.frombuffer(blob, dtype=np.uint8, offset=off).astype(np.int64)
         code = 0
         for i in range(5):
             code = ((code << 8) | (int(self.data[i]) if i < self.data.size else 0)) & _MASK32
         self._st = np.array([code, _MASK32, 5], dtype=np.int64)
-        self._next = 0
-        self._esc_pos = 0
 
     def decode(self, m1, s1, m2, s2, w1) -> np.ndarray:
-        if self._next >= len(self.chunks):
-            raise BitstreamError(f"{self.what}: more chunks requested than the stream holds")
-        n, smin, smax = self.chunks[self._next]
-        self._next += 1
-        if n != np.asarray(m1).size:
-            raise BitstreamError(f"{self.what}: chunk {self._next - 1} holds {n} symbols, the "
-                                 f"decoder expects {np.asarray(m1).size}")
+        n = np.asarray(m1).size
+        smin, smax = self._table.take(n)
         if n == 0:
             return np.zeros(0, np.int64)
         m1, s1, m2, s2, w = _params(m1, s1, m2, s2, w1, n)
@@ -287,20 +252,10 @@ class MixtureStreamDecoder:
             s = np.empty(n, dtype=np.int64)
             if not _decode(m1, s1, m2, s2, w, smin, smax, PHI_TABLE, self._st, self.data, s):
                 raise BitstreamError(f"{self.what}: range decoding ran past the stream's end")
-        esc = np.abs(s) > self.limit
-        k = int(esc.sum())
-        if k:
-            if self._esc_pos + k > self.escapes.size:
-                raise BitstreamError(f"{self.what}: more escape symbols than stored escapes")
-            s[esc] = self.escapes[self._esc_pos:self._esc_pos + k]
-            self._esc_pos += k
-        return s
+        return self._table.restore(s)
 
     def check_done(self) -> None:
-        if self._next != len(self.chunks) or self._esc_pos != self.escapes.size:
-            raise BitstreamError(f"{self.what}: stream holds {len(self.chunks)} chunks / "
-                                 f"{self.escapes.size} escapes, decoded {self._next} / "
-                                 f"{self._esc_pos}")
+        self._table.check_done()
 
 
 def mixture_pmf(s, smin, smax, m1, s1, m2, s2, w1) -> np.ndarray:

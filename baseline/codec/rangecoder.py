@@ -19,10 +19,11 @@ on inconsistent data; lengths are checked against the bytes present before alloc
 from __future__ import annotations
 
 import struct
-from typing import List, Optional, Tuple
+from typing import Optional, Tuple
 
 import numpy as np
 
+from baseline.codec.chunked import ChunkReader, ChunkWriter
 from baseline.codec.container import BitstreamError
 
 try:  # constriction is a hard dependency of coding, not of importing this module
@@ -184,8 +185,6 @@ def decode_categorical(payload, counts, what: str) -> np.ndarray:
 
 # --------------------------------------------------------------------------- Gaussian
 _G_TAG = b"G1"
-_G_HDR = struct.Struct("<2sII")   # tag, n_chunks, n_escapes
-_G_CHUNK = struct.Struct("<Iii")  # n_symbols, smin, smax
 DEFAULT_ESCAPE_LIMIT = 16383
 CALL_SYMBOLS = 1 << 16  # symbols per constriction call (it holds the GIL while it runs)
 
@@ -194,15 +193,15 @@ class GaussianStreamEncoder:
     """Range codes integer symbols with per-symbol quantized Gaussians, chunk by chunk.
 
     ``add(symbols, means, stds)``: ``symbols`` int, ``means``/``stds`` float64 in symbol units
-    (bin ``k`` is ``[k - 0.5, k + 0.5)``); ``finish() -> bytes``.
+    (bin ``k`` is ``[k - 0.5, k + 0.5)``); ``finish() -> bytes``. Layout: see
+    :mod:`baseline.codec.chunked`.
     """
 
     def __init__(self, escape_limit: int = DEFAULT_ESCAPE_LIMIT):
         c = _require_constriction()
         self.limit = int(escape_limit)
         self._enc = c.stream.queue.RangeEncoder()
-        self._chunks: List[Tuple[int, int, int]] = []
-        self._escapes: List[np.ndarray] = []
+        self._table = ChunkWriter(self.limit)
 
     def add(self, symbols, means, stds) -> None:
         s = np.asarray(symbols, dtype=np.int64).reshape(-1)
@@ -210,31 +209,18 @@ class GaussianStreamEncoder:
         d = np.ascontiguousarray(stds, dtype=np.float64).reshape(-1)
         if not (s.size == m.size == d.size):
             raise ValueError("symbols, means and stds must have the same size")
-        if s.size == 0:
-            self._chunks.append((0, 0, 0))
-            return
-        if not (np.isfinite(m).all() and np.isfinite(d).all() and (d > 0).all()):
+        if s.size and not (np.isfinite(m).all() and np.isfinite(d).all() and (d > 0).all()):
             raise ValueError("Gaussian coding needs finite means and positive finite stds")
-        esc = np.abs(s) > self.limit
-        if esc.any():
-            self._escapes.append(s[esc])
-            s = np.clip(s, -self.limit - 1, self.limit + 1)
-        s32 = s.astype(np.int32)
-        smin, smax = int(s32.min()), int(s32.max())
-        self._chunks.append((int(s.size), smin, smax))
+        s, smin, smax = self._table.add(s)
         if smin == smax:  # a constant chunk needs no payload (and constriction needs smax > smin)
             return
+        s32 = s.astype(np.int32)
         model = constriction.stream.model.QuantizedGaussian(smin, smax)
         for i in range(0, s32.size, CALL_SYMBOLS):  # short calls: other threads get the GIL
             self._enc.encode(s32[i:i + CALL_SYMBOLS], model, m[i:i + CALL_SYMBOLS], d[i:i + CALL_SYMBOLS])
 
     def finish(self) -> bytes:
-        esc = np.concatenate(self._escapes) if self._escapes else np.zeros(0, np.int64)
-        parts = [_G_HDR.pack(_G_TAG, len(self._chunks), int(esc.size))]
-        parts += [_G_CHUNK.pack(*ch) for ch in self._chunks]
-        parts.append(esc.astype("<i8").tobytes())
-        parts.append(_words_to_bytes(self._enc.get_compressed()))
-        return b"".join(parts)
+        return self._table.pack(_G_TAG, _words_to_bytes(self._enc.get_compressed()))
 
 
 class GaussianStreamDecoder:
@@ -244,42 +230,18 @@ class GaussianStreamDecoder:
         c = _require_constriction()
         blob = bytes(blob)
         self.what = what
-        self.limit = int(escape_limit)
-        if len(blob) < _G_HDR.size:
-            raise BitstreamError(f"{what}: truncated Gaussian stream header")
-        tag, n_chunks, n_esc = _G_HDR.unpack_from(blob)
-        if tag != _G_TAG:
-            raise BitstreamError(f"{what}: not a Gaussian stream")
-        off = _G_HDR.size
-        need = n_chunks * _G_CHUNK.size + 8 * n_esc
-        if need > len(blob) - off:
-            raise BitstreamError(f"{what}: chunk table ({n_chunks} chunks, {n_esc} escapes) "
-                                 f"exceeds the {len(blob)}-byte stream")
-        self.chunks = [_G_CHUNK.unpack_from(blob, off + i * _G_CHUNK.size) for i in range(n_chunks)]
-        off += n_chunks * _G_CHUNK.size
-        self.escapes = np.frombuffer(blob, dtype="<i8", count=n_esc, offset=off).astype(np.int64)
-        off += 8 * n_esc
-        for n, smin, smax in self.chunks:
-            if n and not (-self.limit - 1 <= smin <= smax <= self.limit + 1):
-                raise BitstreamError(f"{what}: invalid symbol range [{smin}, {smax}]")
-        words = _bytes_to_words(blob[off:], what)
+        self._table = ChunkReader(blob, _G_TAG, what, escape_limit, "Gaussian")
+        words = _bytes_to_words(blob[self._table.payload_offset:], what)
         try:
             self._dec = _call_coder(c.stream.queue.RangeDecoder, words)
         except _CoderError as e:
             raise BitstreamError(f"{what}: {e}") from None
-        self._next = 0
-        self._esc_pos = 0
 
     def decode(self, means, stds) -> np.ndarray:
         m = np.ascontiguousarray(means, dtype=np.float64).reshape(-1)
         d = np.ascontiguousarray(stds, dtype=np.float64).reshape(-1)
-        if self._next >= len(self.chunks):
-            raise BitstreamError(f"{self.what}: more chunks requested than the stream holds")
-        n, smin, smax = self.chunks[self._next]
-        self._next += 1
-        if n != m.size:
-            raise BitstreamError(f"{self.what}: chunk {self._next - 1} holds {n} symbols, "
-                                 f"the decoder expects {m.size}")
+        smin, smax = self._table.take(m.size)
+        n = m.size
         if n == 0:
             return np.zeros(0, np.int64)
         if not (np.isfinite(m).all() and np.isfinite(d).all() and (d > 0).all()):
@@ -294,19 +256,10 @@ class GaussianStreamDecoder:
                                     for i in range(0, n, CALL_SYMBOLS)])
             except _CODER_ERRORS as e:
                 raise BitstreamError(f"{self.what}: range decoding failed ({e})") from None
-        esc = np.abs(s) > self.limit
-        k = int(esc.sum())
-        if k:
-            if self._esc_pos + k > self.escapes.size:
-                raise BitstreamError(f"{self.what}: more escape symbols than stored escapes")
-            s[esc] = self.escapes[self._esc_pos:self._esc_pos + k]
-            self._esc_pos += k
-        return s
+        return self._table.restore(s)
 
     def check_done(self) -> None:
-        if self._next != len(self.chunks) or self._esc_pos != self.escapes.size:
-            raise BitstreamError(f"{self.what}: stream holds {len(self.chunks)} chunks / "
-                                 f"{self.escapes.size} escapes, decoded {self._next} / {self._esc_pos}")
+        self._table.check_done()
 
 
 # --------------------------------------------------------------------------- positions

@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import os
 import traceback
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from typing import Callable, Optional
 
 from tqdm import tqdm

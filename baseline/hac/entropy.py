@@ -235,10 +235,10 @@ class EntropyModel(nn.Module):
                 m = (self.value_weights(a, gauss_mask, n) if training
                      else self.value_mask(a, gauss_mask, n, device=x.device))
             if rate_rows is not None:
-                b = gaussian_bits(x_hat[rate_rows], mean, scale, q[rate_rows])
+                b = self._attr_bits(a, x_hat[rate_rows], q[rate_rows], P)
                 m = m[rate_rows] if m is not None else None
             else:
-                b = gaussian_bits(x_hat, mean, scale, q)
+                b = self._attr_bits(a, x_hat, q, P)
             if m is not None:
                 b = b * m.to(b.dtype)
             if training and decoder_quant == "ste":
@@ -246,6 +246,13 @@ class EntropyModel(nn.Module):
             values_hat[a.name] = x_hat
             bits[a.name] = b.sum(dim=-1)
         return values_hat, bits
+
+    def _attr_bits(self, a: CodedAttribute, xs: torch.Tensor, qs: torch.Tensor, P: dict) -> torch.Tensor:
+        """Estimated bits [S, d] of quantized values ``xs`` with steps ``qs``; ``P`` holds the
+        rows' parameters (``P[name] = (mean, scale, q)``). A subclass with another likelihood
+        for some attribute overrides this."""
+        mean, scale, _ = P[a.name]
+        return gaussian_bits(xs, mean, scale, qs)
 
     @torch.no_grad()
     def estimate_bits(self, xyz, values, gauss_mask=None) -> Dict[str, float]:
@@ -409,7 +416,21 @@ class EntropyModel(nn.Module):
         raise NotImplementedError
 
 
-class HACEntropyModel(EntropyModel):
+class HashGridContext:
+    """Mixin for entropy models whose context is a binary hash grid (``self.grid``) over the
+    anchors' positions: its bounds, its hash bits (the grid's own rate) and its options."""
+
+    def set_bounds(self, xyz_min, xyz_max) -> None:
+        self.grid.set_bounds(xyz_min, xyz_max)
+
+    def hash_bits(self) -> torch.Tensor:
+        return self.grid.hash_bits()
+
+    def grid_config(self) -> dict:
+        return {k: (list(v) if isinstance(v, tuple) else v) for k, v in self.grid.config.items()}
+
+
+class HACEntropyModel(HashGridContext, EntropyModel):
     """HAC's hash-grid context model (see the module docstring).
 
     Options: ``grid`` (a :class:`BinaryHashGrid` to use), or ``grid_options`` (its constructor
@@ -427,17 +448,9 @@ class HACEntropyModel(EntropyModel):
         self.mlp = nn.Sequential(nn.Linear(self.grid.output_dim, self.hidden), nn.ReLU(),
                                  nn.Linear(self.hidden, self.n_out))
 
-    def set_bounds(self, xyz_min, xyz_max) -> None:
-        self.grid.set_bounds(xyz_min, xyz_max)
-
-    def hash_bits(self) -> torch.Tensor:
-        return self.grid.hash_bits()
-
     def config(self) -> dict:
         cfg = super().config()
-        g = dict(self.grid.config)
-        g = {k: (list(v) if isinstance(v, tuple) else v) for k, v in g.items()}
-        cfg.update(hidden=self.hidden, grid=g)
+        cfg.update(hidden=self.hidden, grid=self.grid_config())
         return cfg
 
     def _split(self, out, exact: bool) -> Params:

@@ -22,7 +22,7 @@ respect to the float32 training path, which changes the rate by far less than 0.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import List, Sequence
+from typing import List
 
 import numpy as np
 import torch

@@ -40,12 +40,11 @@ from baseline.codec.container import BitstreamError
 from baseline.codec.mixture import MixtureStreamDecoder, MixtureStreamEncoder
 from baseline.codec.weights import pack_state_dict, round_module_, unpack_state_dict
 from baseline.contracts import CodedAttribute
-from baseline.hac.entropy import (LIKELIHOOD_FLOOR, SCALE_FLOOR, EntropyModel,
-                                  gaussian_bits, gaussian_likelihood)
+from baseline.hac.entropy import (LIKELIHOOD_FLOOR, SCALE_FLOOR, EntropyModel, HashGridContext,
+                                  gaussian_bits)
 from baseline.hac.exact import ExactMLP, det_exp, det_tanh
 from baseline.hac.hashgrid import FEATURE_BITS, BinaryHashGrid
-from baseline.hac.quant import (Q_FLOOR, adaptive_q, clamp_halfwidth, noise_quantize, ste_round,
-                                ste_round_q)
+from baseline.hac.quant import Q_FLOOR, adaptive_q, clamp_halfwidth
 
 # The channel networks' exact inputs: fixed point with 16 fraction bits, |value| <= 2^10 (larger
 # values are clamped, alike on both sides). A wider range would cost the exact weights precision
@@ -77,7 +76,7 @@ def _bin_mass(x, mean, scale, q):
                      - torch.special.ndtr((x - 0.5 * q - mean) / scale))
 
 
-class HACPPEntropyModel(EntropyModel):
+class HACPPEntropyModel(HashGridContext, EntropyModel):
     kind = "hacpp"
     SECTION_LABELS = {"grid": "grid", "mlp": "hyperprior", "ctx": "channel_context"}
 
@@ -112,16 +111,9 @@ class HACPPEntropyModel(EntropyModel):
             for k in range(len(self.sizes))])
 
     # ------------------------------------------------------------------ configuration
-    def set_bounds(self, xyz_min, xyz_max) -> None:
-        self.grid.set_bounds(xyz_min, xyz_max)
-
-    def hash_bits(self) -> torch.Tensor:
-        return self.grid.hash_bits()
-
     def config(self) -> dict:
         cfg = super().config()
-        g = {k: (list(v) if isinstance(v, tuple) else v) for k, v in self.grid.config.items()}
-        cfg.update(hidden=self.hidden, grid=g, main=self.main, n_chunks=self.n_chunks,
+        cfg.update(hidden=self.hidden, grid=self.grid_config(), main=self.main, n_chunks=self.n_chunks,
                    chunk_hidden=self.chunk_hidden)
         return cfg
 
@@ -189,49 +181,14 @@ class HACPPEntropyModel(EntropyModel):
         P = {k: (v if k.startswith("__") else (v[0], v[1], q_all[k][rows])) for k, v in P.items()}
         return q_all, P
 
-    def forward(self, xyz, values, gauss_mask=None, training: bool = True,
-                adaptive_q: bool = True, rate_rows=None, decoder_quant: str = "noise",
-                bit_weights: Optional[dict] = None):
-        """As :meth:`EntropyModel.forward`; the main attribute's bits come from the mixture."""
-        if decoder_quant not in ("noise", "ste"):
-            raise ValueError(f"decoder_quant must be 'noise' or 'ste', got {decoder_quant!r}")
-        n = xyz.shape[0]
-        self._check_values(values, n)
-        if rate_rows is not None and rate_rows.dtype == torch.bool:
-            rate_rows = rate_rows.nonzero()[:, 0]
-        if rate_rows is None:
-            P = self.params(xyz)
-            q_all = {a.name: P[a.name][2] for a in self.attrs}
-        else:
-            q_all, P = self.train_params(xyz, rate_rows)
-        values_hat, bits = {}, {}
-        for a in self.attrs:
-            x = values[a.name]
-            mean, scale, _ = P[a.name]
-            q = q_all[a.name] if adaptive_q else torch.full_like(q_all[a.name], a.q0)
-            x_hat = noise_quantize(x, q) if training else ste_round(x, q, q0=a.q0)
-            xs = x_hat if rate_rows is None else x_hat[rate_rows]
-            qs = q if rate_rows is None else q[rate_rows]
-            if a.name == self.main:
-                hyper = P["__hyper__"]
-                m2, s2, l2 = self.main_params(hyper, xs)
-                lik = mixture_likelihood(xs, qs, mean, scale, hyper[2], m2, s2, l2)
-                b = -torch.log2(lik)
-            else:
-                b = gaussian_bits(xs, mean, scale, qs)
-            if bit_weights is not None and bit_weights.get(a.name) is not None:
-                w = bit_weights[a.name]
-                b = b * (w if rate_rows is None else w[rate_rows]).to(b.dtype)
-            else:
-                m = (self.value_weights(a, gauss_mask, n) if training
-                     else self.value_mask(a, gauss_mask, n, device=x.device))
-                if m is not None:
-                    b = b * (m if rate_rows is None else m[rate_rows]).to(b.dtype)
-            if training and decoder_quant == "ste":
-                x_hat = ste_round_q(x, q, q0=a.q0)
-            values_hat[a.name] = x_hat
-            bits[a.name] = b.sum(dim=-1)
-        return values_hat, bits
+    def _attr_bits(self, a, xs, qs, P):
+        """The main attribute's bits come from the two-component mixture."""
+        if a.name != self.main:
+            return super()._attr_bits(a, xs, qs, P)
+        mean, scale, _ = P[a.name]
+        hyper = P["__hyper__"]
+        m2, s2, l2 = self.main_params(hyper, xs)
+        return -torch.log2(mixture_likelihood(xs, qs, mean, scale, hyper[2], m2, s2, l2))
 
     # ------------------------------------------------------------------ coding
     @staticmethod
