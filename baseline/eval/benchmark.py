@@ -240,7 +240,9 @@ def format_benchmark(res: dict, markdown: bool = True) -> str:
              ("## " if markdown else "") + "Mean over the scenes (as the paper's Tables 1 and 3)",
              table(head, rows),
              ("## " if markdown else "") + "BD-rate against the baseline (seed-mean curves; "
-             "negative = fewer bytes at equal PSNR)", table(bd_head, bd_rows),
+             "negative = fewer bytes at equal PSNR)",
+             table(bd_head, bd_rows) if any(any(c != "-" for c in r[1:]) for r in bd_rows)
+             else "BD-rate needs at least 3 rate points (--lambda) per method.",
              f"Survey CSVs: `survey/{res['dataset']}/<scene>.csv`. Executor: {res['executor']} "
              f"{res['executor_options'] or ''}; runs done by this invocation: {res['jobs_run']}; "
              f"wall {res['wall_s_this_invocation']:.0f} s."]

@@ -94,7 +94,7 @@ def _rd_seeded(results: dict, ax, style) -> None:
                     yerr=[[p["psnr"] - p["psnr_min"] for p in pts],
                           [p["psnr_max"] - p["psnr"] for p in pts]],
                     marker=mk, color=c, lw=1.8, ms=7, capsize=3,
-                    label=f"{m} (mean of {pts[0]['n']} seeds)")
+                    label=m if pts[0]["n"] < 2 else f"{m} (mean of {pts[0]['n']} seeds)")
         for p in pts:
             ax.annotate(f"λ={p['lmbda']:g}", (p["mb"], p["psnr"]), textcoords="offset points",
                         xytext=(5, -11), fontsize=7.5, color=c)

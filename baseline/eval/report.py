@@ -739,6 +739,8 @@ def survey_rows(results: dict) -> list[dict]:
                          "LPIPS": fmt(r.get("lpips"), 4), "Size [Bytes]": str(int(r["bytes"])),
                          "#Gaussians": "" if g is None else str(g)})
         for pt in seed_mean_points(results, m):
+            if pt["n"] < 2:      # one seed: its row above is the point
+                continue
             rs = [r for r in runs_of(results, m) if r["lmbda"] == pt["lmbda"]]
             lp = [r.get("lpips") for r in rs]
             gs = [gaussians_count(r) for r in rs]
