@@ -165,9 +165,10 @@ class AnchorModel(nn.Module):
     def bake_if_faster(self) -> bool:
         """Bake a decoded model where baking was measured faster: on CUDA (H100, truck ``-r 4``
         at 980x544: 1.06x the FPS of the plain form for HAC, 1.08x for Predict-GS), not on the
-        CPU (2 threads: 0.94x for HAC, 1.05x for Predict-GS; gathering the per-anchor [M, H]
-        term moves more memory than the first layers' GEMMs it replaces, which run from
-        cache). Returns whether the model is now baked."""
+        CPU, where neither model gains at both thread counts (truck lambda 0.004, 2 threads:
+        0.94x for HAC, 1.05x for Predict-GS; 1 thread: 1.02x for HAC, 0.91x for Predict-GS;
+        gathering the per-anchor [M, H] term moves more memory than the first layers' GEMMs
+        it replaces, which run from cache). Returns whether the model is now baked."""
         if self.fixed_values is None or not self.xyz.is_cuda:
             self.baked = None
             return False
