@@ -88,3 +88,37 @@ def test_training_and_exact_coding_with_hacpps_masks(small_scene, tmp_path, patc
     dec = decode_model(tmp_path / "m.pgs")
     for k, v in st["values"].items():
         assert torch.equal(v, dec.model.fixed_values[k]), k
+
+
+def test_mask_state_tool_reads_logits_and_adam_steps(tmp_path):
+    """tools/mask_state.py: masks off below logit(0.01); Adam's mean step over the learning rate
+    is ~1 under a steady gradient and far below 1 when the same push comes in rare kicks."""
+    import importlib.util
+    import pathlib
+    spec = importlib.util.spec_from_file_location(
+        "mask_state", pathlib.Path(__file__).parents[1] / "tools" / "mask_state.py")
+    tool = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(tool)
+
+    logits = torch.nn.Parameter(torch.tensor([[-5.0], [-4.0], [0.5], [-6.0]]))
+    opt = torch.optim.Adam([{"params": [logits], "lr": 1e-3, "name": "mask"}], eps=1e-15)
+    for it in range(200):
+        # rows 0-1: a steady push down (positive gradient); rows 2-3: the same mean push
+        # up/down delivered as one kick every 20 steps
+        kick = 20.0 if it % 20 == 0 else 0.0
+        logits.grad = torch.tensor([[1.0], [1.0], [-kick], [kick]])
+        opt.step()
+    ck = {"iteration": 200, "model": {"per_anchor.mask": logits.detach().clone()},
+          "optimizer": opt.state_dict()}
+    torch.save(ck, tmp_path / "checkpoint.pt")
+    s = tool.mask_state(str(tmp_path / "checkpoint.pt"))
+    after = logits.detach().flatten()
+    assert s["off_share"] == pytest.approx(float((after < -4.595).float().mean()))
+    m = opt.state[logits]["exp_avg"].flatten()
+    v = opt.state[logits]["exp_avg_sq"].flatten()
+    step = float(opt.state[logits]["step"])
+    ratio = (m / (1 - 0.9 ** step)).abs() / (v / (1 - 0.999 ** step)).sqrt()
+    assert ratio[:2].min() > 0.99                      # steady gradient: full steps
+    assert ratio[2:].max() < 0.5                       # rare kicks: small mean steps
+    assert s["step_over_lr_median"] == pytest.approx(float(ratio.median()), rel=1e-5)
+    assert s["down_share"] == 0.75 and s["lr"] == 1e-3
