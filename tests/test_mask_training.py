@@ -7,6 +7,7 @@ import torch
 from baseline.data.scene import load_scene
 from baseline.pipeline import visible_anchors
 from baseline.train.trainer import Trainer
+from baseline.config import to_toml
 from conftest import demo_cfg
 
 
@@ -111,9 +112,15 @@ def test_mask_state_tool_reads_logits_and_adam_steps(tmp_path):
     ck = {"iteration": 200, "model": {"per_anchor.mask": logits.detach().clone()},
           "optimizer": opt.state_dict()}
     torch.save(ck, tmp_path / "checkpoint.pt")
-    s = tool.mask_state(str(tmp_path / "checkpoint.pt"))
     after = logits.detach().flatten()
+    # no config.toml beside it: the default threshold 0.01 (logit -4.595)
+    s = tool.mask_state(str(tmp_path / "checkpoint.pt"))
     assert s["off_share"] == pytest.approx(float((after < -4.595).float().mean()))
+    # the run's own threshold: sigmoid(-4.0) = 0.018 < 0.05 switches one more Gaussian off
+    (tmp_path / "config.toml").write_text(to_toml(demo_cfg(10, "entropy.mask_threshold=0.05")))
+    s5 = tool.mask_state(str(tmp_path / "checkpoint.pt"))
+    assert s5["off_share"] == pytest.approx(float((after < -2.944).float().mean()))
+    assert s5["off_share"] > s["off_share"]
     m = opt.state[logits]["exp_avg"].flatten()
     v = opt.state[logits]["exp_avg_sq"].flatten()
     step = float(opt.state[logits]["step"])
