@@ -117,6 +117,21 @@ def cmd_quant_cost(args) -> int:
     return 0
 
 
+def cmd_census(args) -> int:
+    from baseline.eval.census import census_of, format_census
+    from baseline.run import write_json_atomic
+
+    res = []
+    for t in args.targets:
+        r = census_of(t, thresholds=args.thresholds, device=args.device)
+        r["label"] = Path(t).name
+        res.append(r)
+    print(format_census(res))
+    if args.json:
+        write_json_atomic(Path(args.json), {"census": res})
+    return 0
+
+
 def cmd_render(args) -> int:
     from baseline.run import Renderable
 
@@ -374,6 +389,18 @@ def main(argv=None) -> int:
     p.add_argument("--lpips-weights", default=None, help="LPIPS weights file (else unavailable)")
     p.add_argument("--device", default=None, help=DEVICE_HELP)
     p.set_defaults(fn=cmd_eval)
+
+    p = sub.add_parser("census", help="where the rendered Gaussians come from: kept share with "
+                       "the refiner's corrections on and off, neighbours' patterns, initial vs grown "
+                       "anchors, PSNR as the opacity threshold rises")
+    p.add_argument("targets", nargs="+", help="run folders (trained into the adaptive phase) or "
+                   ".pgs files; from the second on, also the PSNR each keeps when cut to the "
+                   "first one's Gaussians per view")
+    p.add_argument("--thresholds", type=float, nargs="+", default=None,
+                   help="opacity thresholds of the sweep (default 0 0.005 0.01 0.02 0.05 0.1 0.2 0.3)")
+    p.add_argument("--json", default=None, help="also write the figures to this JSON file")
+    p.add_argument("--device", default=None, help=DEVICE_HELP)
+    p.set_defaults(fn=cmd_census)
 
     p = sub.add_parser("quant-cost", help="PSNR of a trained run with each coded attribute raw, "
                        "rounded (as coded) or noised (as HAC trains): where its quantization loss comes from")

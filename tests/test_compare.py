@@ -105,7 +105,7 @@ def test_interrupted_compare_resumes(scene, tmp_path, monkeypatch, capsys):
     assert f"resumed from {fact.dir / CHECKPOINT_NAME} at iteration {ITERS // 2}" in printed
     rows = {r["method"]: r for r in res["runs"]}
     assert rows[BASELINE]["stages_run"] == []
-    assert rows["entropy-factorized"]["stages_run"] == ["train", "encode", "decode+eval"]
+    assert rows["entropy-factorized"]["stages_run"] == ["train", "encode", "decode+eval", "census"]
     assert all(r["iterations"] == ITERS for r in rows.values())
     assert res["complete"] is True
     for name in ("results.json", "report.md", "rd.png", "bits.png", "speed.png", "results.csv"):
@@ -231,7 +231,7 @@ def test_only_splits_a_comparison_and_remeasure_retakes_timings(scene, tmp_path)
     assert not specs[0].dir.exists() and is_finished(specs[1])
     full = run_compare(scene, out, vs=["entropy-factorized"], **kw)
     rows = {r["method"]: r for r in full["runs"]}
-    assert rows[BASELINE]["stages_run"] == ["train", "encode", "decode+eval"]
+    assert rows[BASELINE]["stages_run"] == ["train", "encode", "decode+eval", "census"]
     assert rows["entropy-factorized"]["stages_run"] == []
     again = run_compare(scene, out, vs=["entropy-factorized"], remeasure=True, **kw)
     for r in again["runs"]:
@@ -278,7 +278,7 @@ def test_archived_records_are_reported_without_retraining(scene, tmp_path):
     rows = {r["method"]: r for r in full["runs"]}
     assert rows[BASELINE]["stages_run"] == [] and rows[BASELINE]["records_only"]
     assert (rows[BASELINE]["bytes"], rows[BASELINE]["psnr"]) == (base["bytes"], base["psnr"])
-    assert rows["entropy-factorized"]["stages_run"] == ["train", "encode", "decode+eval"]
+    assert rows["entropy-factorized"]["stages_run"] == ["train", "encode", "decode+eval", "census"]
     assert not rows["entropy-factorized"]["records_only"]
     assert "archived records" in format_report(full) and full["complete"] and full["missing"] == []
     assert "Incomplete" not in format_report(full)

@@ -348,3 +348,39 @@ def test_survey_csv_matches_the_results(tmp_path):
             assert float(x["Size [Bytes]"]) == pytest.approx(sum(r["bytes"] for r in rs) / 2)
             assert float(x["PSNR"]) == pytest.approx(sum(r["psnr"] for r in rs) / 2, abs=1e-4)
         assert "results.csv" in paths["report"].read_text()
+
+
+def _census(gaussians, kept, coarse, refiner, sweep):
+    return {"views": 25, "k": 10, "refiner": refiner, "visible_anchors": 50000.0,
+            "mask_on_share": 1.0, "gaussians": gaussians, "kept_share": kept,
+            "kept_share_coarse": coarse, "revived_share": 0.01 if refiner else 0.0,
+            "removed_share": 0.02 if refiner else 0.0,
+            "kept_per_anchor": [10, 0, 60, 20, 10, 0, 0, 0, 0, 0, 0],
+            "pattern": {"anchors": 50000, "equal_nn": 0.5, "equal_random": 0.25,
+                        "hamming_nn": 0.1, "hamming_random": 0.2},
+            "pattern_coarse": None, "by_birth": {"initial": {"mask_on": 10, "kept": 3, "kept_share": 0.3},
+                                                 "grown": {"mask_on": 10, "kept": 2, "kept_share": 0.2}},
+            "psnr_coarse": None,
+            "sweep": [{"threshold": t, "gaussians": g, "psnr": p} for t, g, p in sweep]}
+
+
+def test_census_table_cuts_each_run_to_its_baselines_count():
+    """The census table: kept shares, anchors by drawn count, patterns, births, and the PSNR a
+    run keeps when cut to the baseline's Gaussians per view (interpolated in its sweep)."""
+    res = stored_results()
+    assert "Gaussian census" not in format_report(res)
+    for r in res["runs"]:
+        if r["method"] == "baseline":
+            r["census"] = _census(40000.0, 0.2, 0.2, False, [(0.0, 40000.0, 27.0), (0.1, 30000.0, 26.0)])
+        elif r["method"] == "predict-gs":
+            r["census"] = _census(60000.0, 0.3, 0.32, True,
+                                  [(0.0, 60000.0, 27.5), (0.05, 50000.0, 27.3), (0.1, 30000.0, 26.1)])
+    txt = format_report(res)
+    rows = _rows_of(txt, "Gaussian census")
+    by = {(r[0], r[1]): r for r in rows}
+    assert by[("baseline", "0.004")][2:7] == ["40000", "20.0%", "-", "-", "10.0%"]
+    p = by[("predict-gs", "0.004")]
+    assert p[2:5] == ["60000", "30.0%", "32.0%"]
+    # 40000 lies halfway between the sweep's 50000 (27.3 dB) and 30000 (26.1 dB): 26.7 dB
+    assert p[-2:] == ["26.700", "(-0.800)"]
+    assert "not shown (records archived before the census was kept)" in txt

@@ -162,14 +162,19 @@ def plan_reference(out: str | Path, method: Method, common_patches: list[str] = 
                    Path(out) / "runs" / f"{REFERENCE_PREFIX}{_safe(method.name)}-{h}")
 
 
+# per-anchor tensors the renderer never reads: the Gaussian masks (an uncompressed run never
+# trains them) and the anchors' births (bookkeeping for the census)
+NOT_RENDERED = ("per_anchor.mask", "per_anchor.birth")
+
+
 def float32_bytes(model_state: dict) -> int:
     """Bytes of every floating tensor the renderer reads, at 4 bytes a value: per-anchor
     positions, features (or whatever the feature provider keeps), offsets, scalings, and the
     networks. The Gaussian masks (``per_anchor.mask``) are not counted: an uncompressed run never
-    trains them (all on) and Scaffold-GS has none. This is the size of the model as float32
+    trains them (all on) and Scaffold-GS has none; nor are the anchors' births. This is the size of the model as float32
     arrays, the yardstick "x times smaller" is measured against."""
     return int(sum(4 * v.numel() for k, v in model_state.items()
-                   if v.is_floating_point() and k != "per_anchor.mask"))
+                   if v.is_floating_point() and k not in NOT_RENDERED))
 
 
 def _stage_reference(spec: RunSpec, record: dict) -> None:
@@ -414,6 +419,18 @@ def _stage_decoded(spec: RunSpec, scene_path: str, record: dict, lpips_fn,
     _write_record(spec, record)
 
 
+def _stage_census(spec: RunSpec, record: dict) -> None:
+    """Where the run's Gaussians come from (:mod:`baseline.eval.census`), from its checkpoint's
+    coded state (what the file holds, with the anchors' births); the per-view list is dropped."""
+    from baseline.eval.census import census_of
+
+    c = census_of(str(spec.dir))
+    c.pop("view_kept_share", None)
+    c.pop("target", None)
+    record["census"] = c
+    _write_record(spec, record)
+
+
 def run_one(spec: RunSpec, scene_path: str, lpips_fn=None, lpips: Optional[str] = None,
             progress: bool = True, on_stage: Optional[Callable[[str], None]] = None,
             remeasure: bool = False, codec: Optional[dict] = None) -> dict:
@@ -453,6 +470,13 @@ def run_one(spec: RunSpec, scene_path: str, lpips_fn=None, lpips: Optional[str] 
         stage("decode+eval")
         _stage_decoded(spec, scene_path, record, lpips_fn, lpips)
         done.append("decode+eval")
+    from baseline.run import CHECKPOINT_NAME
+
+    if "census" not in record and not records_only(spec) \
+            and (spec.dir / CHECKPOINT_NAME).exists():
+        stage("census")
+        _stage_census(spec, record)
+        done.append("census")
     row = make_row(spec, res, record)
     row["stages_run"] = done
     return row
@@ -494,8 +518,12 @@ def make_row(spec: RunSpec, res: dict, record: dict) -> dict:
         "train_versions": res.get("versions", {}),
         # records written before the version was kept were trained with version 1
         "training_semantics": res.get("training_semantics", 1),
+        # versions of the components that declare one (absent: every component at version 1)
+        "component_semantics": res.get("component_semantics", {}),
         "rate_values_per_anchor": spec.cfg.entropy.rate_values_per_anchor,
         "records_only": records_only(spec),
+        # the Gaussian census (absent from records written before it was kept)
+        "census": record.get("census"),
     }
 
 

@@ -413,6 +413,53 @@ def alive_table(results: dict) -> Optional[Table]:
                  rows, notes, left=2)
 
 
+def census_table(results: dict) -> Optional[Table]:
+    """The Gaussian census of each run (:mod:`baseline.eval.census`): the opacity test's pass
+    rate with the refiner's corrections on and off, how many Gaussians visible anchors draw,
+    whether neighbours draw the same K-slot pattern, initial vs grown anchors, and the PSNR a
+    run keeps when its count is cut to the baseline's at the same rate point. None when no run
+    has one (runs archived before it was kept)."""
+    from baseline.eval.census import _hist_parts, psnr_at_gaussians
+
+    runs = [r for r in ordered_runs(results) if r.get("census")]
+    if not runs:
+        return None
+    rows = []
+    for r in runs:
+        c = r["census"]
+        births = c.get("by_birth") or {}
+        grown = " / ".join(_share(b["kept_share"]) if b["kept_share"] is not None else "-"
+                           for b in births.values()) or "-"
+        p = None if _is_base(results, r) else baseline_partner(results, r)
+        cut = "-"
+        if p is not None and p.get("census") and c["gaussians"] > p["census"]["gaussians"]:
+            v = psnr_at_gaussians(c["sweep"], p["census"]["gaussians"])
+            cut = "-" if v is None else f"{v:.3f} ({v - c['sweep'][0]['psnr']:+.3f})"
+        rows.append([r["method"], _lam(r), _count(c["gaussians"]), _share(c["kept_share"]),
+                     _share(c["kept_share_coarse"]) if c["refiner"] else "-",
+                     (f"{_share(c['revived_share'])} / {_share(c['removed_share'])}"
+                      if c["refiner"] else "-"),
+                     " / ".join(_share(x) for x in _hist_parts(c["kept_per_anchor"])),
+                     f"{_share(c['pattern']['equal_nn'])} / {_share(c['pattern']['equal_random'])}",
+                     grown, cut])
+    notes = ["Measured on the run's coded state (what its file holds), test views. kept: the share "
+             "of mask-on candidate Gaussians with opacity > 0; corrections off: the same with the "
+             "refiner's corrections removed (the provider's features alone), and the candidates "
+             "the corrections revive / remove; anchors drawing 0 / 1-3 / 4-7 / 8+: visible anchors "
+             "by their number of drawn Gaussians; same pattern: the share of visible anchors whose "
+             "K-slot drawn/not pattern equals their nearest visible neighbour's / a random one's; "
+             "kept by birth: initial / grown anchors (Predict-GS: grown in stage 1 / after); cut: "
+             "the PSNR left when the opacity threshold is raised until the run draws the "
+             "baseline's Gaussians per view (same rate point), and its change. `pgs census RUN "
+             "[RUN2 ...]` prints the whole census."]
+    notes += _not_shown(results, lambda r: bool(r.get("census")), "the census was")
+    return Table("Gaussian census", ["method", "lambda", "Gaussians/view", "kept",
+                                     "corrections off", "revived / removed",
+                                     "anchors drawing 0 / 1-3 / 4-7 / 8+", "same pattern: nn / random",
+                                     "kept by birth", "cut to baseline's count: PSNR"],
+                 rows, notes, left=2)
+
+
 def reference_table(results: dict) -> Optional[Table]:
     """Every run against the uncompressed reference (``pgs compare --reference``): PSNR change
     and how many times smaller its file is than the reference's float32 model. None without one."""
@@ -589,7 +636,13 @@ def _semantics_line(runs: list) -> str:
     if len(vs) > 1:
         return ("MIXED: " + ", ".join(semantics_note(v) for v in vs)
                 + " (runs of different versions are not comparable)")
-    return semantics_note(vs[0])
+    comps = {}
+    for r in runs:
+        for k, v in (r.get("component_semantics") or {}).items():
+            comps.setdefault(k, set()).add(int(v))
+    extra = "".join(f"; {k} {'/'.join(str(v) for v in sorted(vals))}"
+                    + (" (MIXED)" if len(vals) > 1 else "") for k, vals in sorted(comps.items()))
+    return semantics_note(vs[0]) + extra
 
 
 def _codec_line(results: dict, runs: list) -> str:
@@ -649,11 +702,13 @@ def _reference_line(results: dict) -> str:
 def all_tables(results: dict) -> list[Table]:
     elements, alive = elements_table(results), alive_table(results)
     ref, seeds = reference_table(results), seed_table(results)
+    cen = census_table(results)
     return ([quality_table(results)] + ([seeds] if seeds is not None else [])
             + ([ref] if ref is not None else [])
             + [groups_table(results), table3(results)]
             + section_tables(results) + ([elements] if elements is not None else [])
             + [speed_table(results)] + ([alive] if alive is not None else [])
+            + ([cen] if cen is not None else [])
             + [bd_table(results)])
 
 

@@ -136,6 +136,10 @@ class AnchorModel(nn.Module):
         self.add_per_anchor("offsets", torch.zeros(N, K, 3), grow_zeros)
         self.add_per_anchor("scaling", log_scaling.float().clone(), None)  # set by the grower
         self.add_per_anchor("mask", torch.ones(N, K, 1), None)            # init logit 1
+        # the iteration each anchor was created at (0: initial; -1: unknown, a checkpoint
+        # written before births were kept); never coded, read by the census (eval/census.py)
+        self.iteration = 0          # set by the trainer before each step
+        self.add_per_anchor("birth", torch.zeros(N), self._grow_birth, trainable=False)
         self.provider = provider_factory(self)
         self.decoder = DecoderMLPs(self.provider.feature_dim, K, cfg_model.hidden, cfg_model.use_distance)
         self.refiner = refiner_factory(self) if refiner_factory is not None else None
@@ -175,6 +179,9 @@ class AnchorModel(nn.Module):
         return self.bake()
 
     # ------------------------------------------------------------------ per-anchor bookkeeping
+    def _grow_birth(self, values, parent, inverse, n_new):
+        return values.new_full((n_new,), float(self.iteration))
+
     def add_per_anchor(self, name: str, value: torch.Tensor, grow_rule: Optional[GrowRule],
                        trainable: bool = True) -> None:
         self.per_anchor[name] = nn.Parameter(value, requires_grad=trainable)
@@ -248,12 +255,15 @@ class AnchorModel(nn.Module):
 
     def decode(self, cam_center: torch.Tensor, idx: torch.Tensor,
                values: Optional[dict[str, torch.Tensor]] = None,
-               xyz: Optional[torch.Tensor] = None, visible: Optional[torch.Tensor] = None) -> Gaussians:
+               xyz: Optional[torch.Tensor] = None, visible: Optional[torch.Tensor] = None,
+               opacity_floor: float = 0.0) -> Gaussians:
         """Neural Gaussians of anchors ``idx`` [M] seen from ``cam_center`` [3].
 
         Args:
             values: coded attribute values for ``idx`` (possibly quantized); default: raw values.
             xyz: [M,3] anchor positions to use (e.g. 16-bit quantized); default: stored ones.
+            opacity_floor: keep Gaussians with (masked) opacity above this (Scaffold-GS: 0);
+                the census's threshold sweep raises it.
         """
         values, xyz, raw_op, raw_cov, raw_col = self.raw_heads(cam_center, idx, values, xyz)
         M, K = len(idx), self.n_offsets
@@ -262,7 +272,7 @@ class AnchorModel(nn.Module):
         # HAC: the mask multiplies the opacity before the selection (a masked Gaussian is not
         # drawn); HAC++ (training): it multiplies opacity and scale of the selected ones
         opacity = torch.tanh(raw_op) if after else torch.tanh(raw_op) * gmask      # [M,K]
-        sel = (opacity > 0).reshape(-1)                             # [M*K]
+        sel = (opacity > opacity_floor).reshape(-1)                 # [M*K]
         # The kept Gaussians are chosen first and only their attributes are activated: the
         # same per-element arithmetic as activating all M*K candidates and selecting after,
         # without the work on the ~70-80% that a trained model drops (masks off, opacity <= 0).

@@ -213,6 +213,7 @@ class Trainer:
         """One training iteration. Its stages are named for ``pgs bench train``
         (:mod:`baseline.timing`; free when no bench is timing them)."""
         cfg = self.cfg
+        self.model.iteration = it          # the birth of anchors grown in this step
         with stage("hooks before"):
             for h in self.hooks:
                 if hasattr(h, "before_step"):
@@ -399,6 +400,12 @@ class Trainer:
             self.model.per_anchor[k] = torch.nn.Parameter(
                 torch.zeros(shape, device=self.device),
                 requires_grad=self.model.per_anchor[k].requires_grad)
+        if "per_anchor.birth" not in s["model"] and "per_anchor.xyz" in s["model"]:
+            # written before anchors' births were kept: unknown (-1)
+            n = s["model"]["per_anchor.xyz"].shape[0]
+            s["model"]["per_anchor.birth"] = torch.full((n,), -1.0)
+            self.model.per_anchor["birth"] = torch.nn.Parameter(
+                torch.zeros(n, device=self.device), requires_grad=False)
         check_finite(s["model"], path)
         check_finite(s["entropy"], path, "entropy model")
         check_optimizer_finite(s["optimizer"], path)
