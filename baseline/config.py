@@ -535,16 +535,54 @@ LATER_KEYS = {("lr", "mask_schedule_scaled"): False,
               ("lr", "mask_final_cap"): 0.0,
               ("entropy", "mask_training"): "hac",
               ("lr", "channel_final"): 0.0005,
-              ("entropy", "rate_values_per_anchor"): 0}
+              ("entropy", "rate_values_per_anchor"): 0,
+              ("predict", "fusion_init"): "zero",
+              ("predict", "box"): "extent",
+              ("predict", "box_quantile"): 0.01}
+
+
+def component_semantics(cfg: Config) -> dict[str, int]:
+    """The training-semantics versions of the registered components ``cfg`` selects (feature
+    provider, refiner, hooks, entropy model, mask training) that declare one above 1 (class
+    attribute ``TRAINING_SEMANTICS``): ``{"kind.name": version}``. A component bumps its own
+    version when it trains differently from the same config, so that only the runs that use it
+    get new hashes (a Predict-GS change leaves HAC's finished runs valid)."""
+    from baseline import registry
+
+    registry.ensure_loaded()
+    chosen = [("feature_provider", cfg.model.feature_provider), ("refiner", cfg.model.refiner),
+              ("entropy_model", cfg.entropy.model), ("mask_training", cfg.entropy.mask_training)]
+    chosen += [("hooks", h) for h in cfg.train.hooks]
+    out = {}
+    for kind, name in chosen:
+        try:
+            cls = registry.component_class(kind, name)
+        except (KeyError, ImportError, AttributeError):
+            continue
+        v = int(getattr(cls, "TRAINING_SEMANTICS", 1) or 1)
+        if v > 1:
+            out[f"{kind}.{name}"] = v
+    return out
+
+
+def semantics_label(cfg_or_components) -> str:
+    """``"2"`` or ``"2; feature_provider.sfp 2"``: the version a run was trained under."""
+    comps = (cfg_or_components if isinstance(cfg_or_components, dict)
+             else component_semantics(cfg_or_components))
+    return "; ".join([str(TRAINING_SEMANTICS)] + [f"{k} {v}" for k, v in sorted(comps.items())])
 
 
 def config_hash(cfg: Config, semantics: int = TRAINING_SEMANTICS) -> str:
     """A short stable hash of the merged config and the training-semantics version (used to
-    reuse finished runs). ``semantics=1`` gives the hashes runs of version 1 were stored under
-    (that version was not hashed)."""
+    reuse finished runs), with the versions of the components it selects
+    (:func:`component_semantics`) when any is above 1. ``semantics=1`` gives the hashes runs of
+    version 1 were stored under (that version was not hashed)."""
     d = to_dict(cfg, drop_meta=True)
     if semantics != 1:
         d["training_semantics"] = int(semantics)
+        comps = component_semantics(cfg)
+        if comps:
+            d["component_semantics"] = comps
     for sec, key in EXECUTION_KEYS:
         d[sec].pop(key, None)
     for (sec, key), default in LATER_KEYS.items():

@@ -12,7 +12,7 @@ from typing import Optional
 
 import torch
 
-from baseline.config import TRAINING_SEMANTICS, Config, from_toml
+from baseline.config import TRAINING_SEMANTICS, Config, component_semantics, from_toml
 from baseline.fileio import write_text_atomic
 from baseline.train.trainer import CHECKPOINT_NAME, Trainer
 
@@ -79,6 +79,7 @@ def train_run(scene_path: str, out: str | Path, cfg: Config, resume: bool = Fals
         "scene": str(Path(scene_path).resolve()),
         "protocol": getattr(scene, "protocol", {}),
         "training_semantics": TRAINING_SEMANTICS,
+        "component_semantics": component_semantics(cfg),
         "iterations": trainer.iteration,
         "train_time_s": trainer.train_time,
         "s_per_it": trainer.train_time / max(trainer.iteration, 1),

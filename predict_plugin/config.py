@@ -14,11 +14,22 @@ class PredictConfig:
               "mgrd_hidden": (1, 4096), "d_s": (1e-3, 16.0), "d_e": (1e-3, 16.0),
               "T": (0, 1 << 31), "lr_residual": (0, 1e3), "lr_grid_init": (0, 1e3),
               "lr_grid_final": (0, 1e3), "lr_fusion_init": (0, 1e3), "lr_fusion_final": (0, 1e3),
-              "lr_mgrd_init": (0, 1e3), "lr_mgrd_final": (0, 1e3)}
+              "lr_mgrd_init": (0, 1e3), "lr_mgrd_final": (0, 1e3), "box_quantile": (0.0, 0.25)}
 
     # Spatial Feature Pool (its own binary hash grid, HAC layout) + two-layer fusion MLP -> 50.
     fusion_hidden: int = 64            # choose: the paper gives two layers and the 50-dim output only
+    # the fusion MLP's last layer at start (the paper is silent): "zero" (f_c starts at 0 for
+    # every anchor, as Scaffold-GS's per-anchor features do; the SFP learns away from it) or
+    # "default" (PyTorch's init: f_c starts as a random function of the binarized grid's random
+    # +-1 entries, a different code per anchor; the decoder then keeps ~1.6x the Gaussians,
+    # docs/notes/predict-gs-gaussian-count.md)
+    fusion_init: str = "zero"
     grid_auto: bool = False            # size the SFP tables from the anchor count
+    # the SFP's normalisation (the paper is silent): "extent" = the initial anchors' box + 10%;
+    # "contract" = their [q, 1-q] quantile box + 10% fills the middle half of the grid and the
+    # space outside is contracted into the rest (predict_plugin/sfp.py)
+    box: str = "extent"
+    box_quantile: float = 0.01
     # Residual compensation
     residual: bool = True              # False: SFP only (ablation)
     residual_dim: int = 25

@@ -8,7 +8,12 @@ that the MGRD refiner decodes; the entropy model codes f_r instead of the featur
 
 Choices (documented): the SFP normalisation box is fixed at start from the initial anchors,
 widened by 10% of the extent per side, so that grown anchors still fall inside and the learned
-field is never re-indexed (a point outside reads zero features, as HAC's grid). The fusion hidden
+field is never re-indexed (a point outside reads zero features, as HAC's grid). With
+``predict.box = "contract"`` the box is the anchors' inner quantiles instead and the space
+outside it is contracted into the grid's outer shell (`baseline.hac.hashgrid.contract_unit`):
+on captures whose SfM points reach far beyond the object (truck: 255 x 45 x 159 units for all
+anchors, 39 x 10 x 51 for the inner 98%) the extent box leaves the finest levels far coarser
+than the anchor spacing where most anchors are. The fusion hidden
 width (``predict.fusion_hidden``) is not given by the paper.
 
 Decoded models cache f_c for every anchor (:meth:`SpatialFeaturePool.build_cache`): it depends
@@ -36,6 +41,9 @@ def _layout_from_json(layout: dict) -> dict:
 class SpatialFeaturePool(nn.Module):
     # what its bitstream sections hold (pgs info / reports: "sfp.grid", "sfp.fusion")
     SECTION_LABELS = {"grid": "grid", "weights": "fusion"}
+    # its training-semantics version (baseline.config.component_semantics): 2 = the fusion MLP's
+    # last layer starts at zero (predict.fusion_init = "zero"); 1 = PyTorch's default init
+    TRAINING_SEMANTICS = 2
 
     def __init__(self, model, cfg, codec_state: Optional[dict] = None):
         """``codec_state``: what :meth:`codec_state` returned when the file was written (the
@@ -58,11 +66,23 @@ class SpatialFeaturePool(nn.Module):
                                             model.n_anchors)
         self.grid = BinaryHashGrid(**self.grid_layout)
         xyz = model.xyz.detach()
-        lo, hi = xyz.min(0).values, xyz.max(0).values
+        if p.box == "extent":
+            lo, hi = xyz.min(0).values, xyz.max(0).values
+        elif p.box == "contract":
+            q = torch.tensor([p.box_quantile, 1.0 - p.box_quantile], dtype=torch.float64)
+            lo, hi = torch.quantile(xyz.double(), q, dim=0).float()
+        else:
+            raise ValueError(f"predict.box must be 'extent' or 'contract', got '{p.box}'")
         margin = 0.1 * (hi - lo).clamp_min(1e-6)
-        self.grid.set_bounds(lo - margin, hi + margin)
+        self.grid.set_bounds(lo - margin, hi + margin)      # the file keeps these bounds
+        self.grid.contract = p.box == "contract"      # from the config, at decode too
         self.fusion = nn.Sequential(nn.Linear(self.grid.output_dim, p.fusion_hidden), nn.ReLU(),
                                     nn.Linear(p.fusion_hidden, self.feature_dim))
+        if p.fusion_init == "zero":
+            nn.init.zeros_(self.fusion[2].weight)
+            nn.init.zeros_(self.fusion[2].bias)
+        elif p.fusion_init != "default":
+            raise ValueError(f"predict.fusion_init must be 'default' or 'zero', got '{p.fusion_init}'")
         self.use_residual = bool(p.residual) and p.residual_dim > 0
         if self.use_residual:
             model.add_per_anchor("residual", torch.zeros(model.n_anchors, p.residual_dim), grow_zeros)

@@ -52,7 +52,8 @@ def test_sfp_declares_residual_instead_of_feat():
 
 
 def test_sfp_output_shape_and_gradient_reaches_hash_params():
-    cfg = _pgs_cfg("model.voxel_size=0.2")
+    # PyTorch's init of the fusion: a zero last layer passes no gradient to the grid at start
+    cfg = _pgs_cfg("model.voxel_size=0.2", "predict.fusion_init=default")
     model = _pgs_model(cfg)
     sfp = model.provider
     idx = torch.arange(model.n_anchors)
@@ -178,3 +179,91 @@ def test_auto_sized_sfp_decodes_after_the_anchor_count_changed(tmp_path):
     write_container(tmp_path / "bad.pgs", header, list(sections.items()))
     with pytest.raises(BitstreamError, match="module_state"):
         decode_model(tmp_path / "bad.pgs")
+
+
+def test_fusion_starts_at_zero_by_default_and_learns_away_from_it():
+    """predict.fusion_init: "zero" (default) gives f_c = 0 for every anchor at start, as
+    Scaffold-GS's features, and the first step moves the fusion's last layer (the grid's
+    gradient then flows); "default" starts from a random code per anchor."""
+    cfg = _pgs_cfg("model.voxel_size=0.2")
+    assert cfg.ext["predict"].fusion_init == "zero"
+    model = _pgs_model(cfg)
+    idx = torch.arange(model.n_anchors)
+    f = model.provider.predict(model.xyz[idx])
+    assert torch.count_nonzero(f) == 0
+    f.retain_grad()
+    (f * torch.randn_like(f)).sum().backward()
+    last = model.provider.fusion[2]
+    assert last.weight.grad is not None and last.weight.grad.abs().sum() > 0
+    rnd = _pgs_model(_pgs_cfg("model.voxel_size=0.2", "predict.fusion_init=default"))
+    f2 = rnd.provider.predict(rnd.xyz)
+    assert f2.abs().mean() > 1e-2 and f2.std(dim=0).mean() > 1e-3   # differs between anchors
+    with pytest.raises(ValueError, match="fusion_init"):
+        _pgs_model(_pgs_cfg("model.voxel_size=0.2", "predict.fusion_init=ones"))
+
+
+def test_sfp_training_semantics_changes_only_predict_gs_hashes():
+    """The SFP's component semantics (2: zero fusion init) enters the hash of the configs that
+    use it: the archived semantics-2 truck records of HAC keep their folder hashes, those of
+    Predict-GS trained with the old init do not."""
+    from pathlib import Path
+
+    from baseline.config import component_semantics, config_hash
+
+    root = Path(__file__).parent.parent / "docs/examples/truck-r4-cpu-s2/runs"
+    assert component_semantics(build_config(["cpu"])) == {}
+    assert component_semantics(build_config(["cpu", "predict-gs"])) == {"feature_provider.sfp": 2}
+    for d in root.iterdir():
+        method, lam, seed, h = d.name.rsplit("-", 3)
+        cfg = build_config(["cpu"] + (["predict-gs"] if method == "predict-gs" else []),
+                           ["data.resolution=4", f"entropy.lmbda={float(lam[1:])!r}",
+                            f"train.seed={int(seed[1:])}"])
+        assert (config_hash(cfg) == h) == (method == "baseline"), d.name
+
+
+def test_contracted_sfp_box_is_the_inner_quantiles_and_decodes_the_same(tmp_path):
+    """predict.box = "contract": the grid bounds are the anchors' inner-quantile box (+10%),
+    positions inside map linearly onto the middle half of the grid, far ones into the outer
+    shell (never outside [0, 1)), continuously at the box face; a decoded model reads the same
+    f_c (the flag comes from the config, the bounds from the file)."""
+    from baseline.codec.model_codec import decode_model, encode_model
+    from baseline.hac.hashgrid import contract_unit
+    from baseline.scaffold.build import build_entropy
+
+    u = torch.tensor([[0.5, 0.5, 0.5], [0.0, 1.0, 0.25], [3.0, 0.5, 0.5], [-1e6, 0.5, 2.0]],
+                     dtype=torch.float64)
+    c = contract_unit(u)
+    assert torch.allclose(c[0], torch.tensor([0.5, 0.5, 0.5], dtype=torch.float64))
+    assert torch.allclose(c[1], torch.tensor([0.25, 0.75, 0.375], dtype=torch.float64))
+    assert bool(((c >= 0) & (c < 1)).all())
+    assert float(c[2, 0]) == pytest.approx((2 - 1 / 5) / 4 + 0.5)      # v = 5 -> 1.8 -> 0.95
+    edge = contract_unit(torch.tensor([[1.0 + 1e-12, 0.5, 0.5]], dtype=torch.float64))
+    assert float(edge[0, 0]) == pytest.approx(0.75)
+
+    cfg = _pgs_cfg("model.voxel_size=0.05", "predict.box=contract", "predict.fusion_init=default")
+    g = torch.Generator().manual_seed(1)
+    pts = torch.cat([torch.rand(400, 3, generator=g) * 2 - 1, torch.tensor([[50.0, -40.0, 30.0]])])
+    model, _ = build_model(cfg, pts)
+    grid = model.provider.grid
+    assert grid.contract and float(grid.xyz_max[0]) < 5.0       # the outlier is outside the box
+    un = grid.normalize(model.xyz)
+    assert bool(((un >= 0) & (un < 1)).all())
+    f = model.provider.predict(model.xyz)
+    ent = build_entropy(cfg, model)
+    encode_model(cfg, model, ent, tmp_path / "m.pgs")
+    dec = decode_model(tmp_path / "m.pgs")
+    sfp = dec.model.provider
+    assert sfp.grid.contract
+    valid = model.anchor_valid()
+    f_dec = sfp.predict(dec.model.xyz)
+    assert f_dec.shape[0] == int(valid.sum())
+    # decoded positions are 16-bit quantized: compare f_c at the decoded positions
+    assert torch.allclose(f_dec, model.provider.predict(dec.model.xyz), atol=1e-6)
+    assert not torch.allclose(f, torch.zeros_like(f))
+    # only the grid entries decoded anchors read (codec.grids = used): read through the contraction
+    from dataclasses import replace
+    cfg_used = replace(cfg, codec=replace(cfg.codec, grids="used"))
+    encode_model(cfg_used, model, ent, tmp_path / "used.pgs")
+    dec2 = decode_model(tmp_path / "used.pgs")
+    assert (tmp_path / "used.pgs").stat().st_size < (tmp_path / "m.pgs").stat().st_size
+    assert torch.equal(dec2.model.provider.predict(dec2.model.xyz), f_dec)

@@ -381,6 +381,20 @@ class _WeightedGather(torch.autograd.Function):
         return gt, None, None
 
 
+def contract_unit(u: torch.Tensor) -> torch.Tensor:
+    """Scene contraction of box-normalised positions ``u`` [N, 3] (the box is [0, 1]^3) into
+    [0, 1)^3: the box maps linearly onto the middle half [1/4, 3/4]^3 and the space outside it
+    into the outer quarters, by the L-infinity contraction used by MERF and nerfstudio's
+    ``SceneContraction``: with v = 2u - 1 and n = max|v_i|, v -> (2 - 1/n) v / n where n > 1.
+    Every operation is a correctly rounded IEEE one, so float64 inputs give reproducible bits."""
+    v = 2.0 * u - 1.0
+    n = v.abs().amax(dim=-1, keepdim=True)
+    big = n > 1.0
+    n = torch.where(big, n, torch.ones_like(n))
+    v = torch.where(big, v * ((2.0 - 1.0 / n) / n), v)
+    return (v + 2.0) / 4.0
+
+
 class BinaryHashGrid(nn.Module):
     """HAC's mixed 3D grid + 2D planes with binarised entries; a generic binary feature field.
 
@@ -395,6 +409,9 @@ class BinaryHashGrid(nn.Module):
         chunk: points per vectorised chunk (memory bound).
 
     Buffers ``xyz_min``/``xyz_max`` [3] (float32) hold the normalisation bounds (:meth:`set_bounds`).
+    ``contract`` (attribute, set by the owner from its config; default False): the bounds fill
+    the middle half of the unit cube and the space outside them is contracted into the rest
+    (:func:`contract_unit`).
     ``forward(xyz [N, 3]) -> [N, output_dim]`` in ``xyz``'s floating dtype.
     """
 
@@ -409,6 +426,7 @@ class BinaryHashGrid(nn.Module):
                  oob: str = "per_grid",
                  chunk: int = 65536):
         super().__init__()
+        self.contract = False
         if oob not in ("per_grid", "all"):
             raise ValueError(f"oob must be 'per_grid' or 'all', got {oob!r}")
         for p in planes:
@@ -462,7 +480,8 @@ class BinaryHashGrid(nn.Module):
     def normalize(self, xyz: torch.Tensor) -> torch.Tensor:
         lo = self.xyz_min.to(device=xyz.device, dtype=xyz.dtype)
         hi = self.xyz_max.to(device=xyz.device, dtype=xyz.dtype)
-        return (xyz - lo) / (hi - lo)
+        u = (xyz - lo) / (hi - lo)
+        return contract_unit(u) if self.contract else u
 
     # --------------------------------------------------------------- tables
     def binary_tables(self) -> Dict[str, torch.Tensor]:
@@ -505,8 +524,9 @@ class BinaryHashGrid(nn.Module):
         """
         x = xyz.detach().cpu()
         lo64, hi64 = self.xyz_min.detach().cpu().double(), self.xyz_max.detach().cpu().double()
+        u64 = (x.double() - lo64) / (hi64 - lo64)
         paths = [(self.normalize(x.float().to(self.xyz_min.device)).cpu(), False),
-                 ((x.double() - lo64) / (hi64 - lo64), True)]
+                 (contract_unit(u64) if self.contract else u64, True)]
         out = []
         for k, g in self.grids.items():
             n_rows = g.params.shape[0]
@@ -582,6 +602,7 @@ class BinaryHashGrid(nn.Module):
             lo = self.xyz_min.detach().to(device="cpu", dtype=torch.float64)
             hi = self.xyz_max.detach().to(device="cpu", dtype=torch.float64)
             u = (x - lo) / (hi - lo)
+            u = contract_unit(u) if self.contract else u
         tables = {k: t.detach().to(device="cpu", dtype=torch.float64)
                   for k, t in self.binary_tables().items()}
         out = self._query(u, tables, exact=True)
