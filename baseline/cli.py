@@ -498,8 +498,9 @@ def main(argv=None) -> int:
     p.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
     p.add_argument("--only", action="append", default=None, metavar="METHOD",
                    help="bring only this method's runs to the end and report them (repeat; "
-                   "'baseline' or a --vs value): split a comparison across processes sharing "
-                   "--out, then rerun without it for the full report")
+                   "'baseline' (shown as HAC), a --vs value, or its name in the report, e.g. "
+                   "Predict-GS): split a comparison across processes sharing --out, then rerun "
+                   "without it for the full report")
     p.add_argument("--report-only", action="store_true",
                    help="train and measure nothing: report the finished runs (archived records "
                         "included) and list the missing ones")

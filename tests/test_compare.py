@@ -111,12 +111,14 @@ def test_interrupted_compare_resumes(scene, tmp_path, monkeypatch, capsys):
     for name in ("results.json", "report.md", "rd.png", "bits.png", "speed.png", "results.csv"):
         assert (out / name).exists(), name
     import csv
+
+    from baseline.eval.report import method_label
     with open(out / "results.csv", newline="") as fh:
         survey = {x["Submethod"]: x for x in csv.DictReader(fh)}
     stored = json.loads((out / "results.json").read_text())["runs"]
     assert len(survey) == len(stored)
     for r in stored:
-        x = survey[f"{r['method']} lambda={r['lmbda']:g}"]
+        x = survey[f"{method_label(r['method'], ['demo'])} lambda={r['lmbda']:g}"]
         assert float(x["PSNR"]) == pytest.approx(r["psnr"], abs=1e-4)
         assert int(x["Size [Bytes]"]) == r["bytes"] and int(x["#Gaussians"]) == r["masks_on"]["on"]
 
@@ -152,7 +154,7 @@ def test_interrupted_compare_resumes(scene, tmp_path, monkeypatch, capsys):
     assert p["has_cache"] and p["fps_nocache"] > 0 and p["psnr_nocache"] == pytest.approx(p["psnr"])
     assert not b["has_cache"] and b["fps_nocache"] is None
     md = (out / "report.md").read_text()
-    assert "| entropy-factorized | 0.004 |" in md and "| baseline | 0.004 |" in md
+    assert "| HAC+entropy-factorized | 0.004 |" in md and "| HAC | 0.004 |" in md
     assert "(no cache)" in printed and "Bjontegaard" in printed
 
     # ---- a third invocation through the CLI reuses everything

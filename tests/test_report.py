@@ -105,7 +105,7 @@ def test_report_text_and_markdown(tmp_path):
               "-20.00", "(no cache)", "threads"):
         assert s in txt, s
     # Table 3 savings are arithmetic on the stored bytes: predict-gs feature = 0.4 x baseline
-    line = [ln for ln in txt.splitlines() if ln.startswith("predict-gs") and "+60.0%" in ln]
+    line = [ln for ln in txt.splitlines() if ln.startswith("Predict-GS") and "+60.0%" in ln]
     assert len(line) == 3
     paths = write_report(res, tmp_path)
     md = (tmp_path / "report.md").read_text()
@@ -129,7 +129,7 @@ def test_protocol_names_the_device():
         if r["method"] == "predict-gs":
             r["device"] = "cuda:0 (NVIDIA H100 80GB HBM3)"
     dev = dict(protocol_lines(res))["device"]
-    assert "cuda:0 (NVIDIA H100 80GB HBM3) (predict-gs" in dev and "cpu (baseline" in dev
+    assert "cuda:0 (NVIDIA H100 80GB HBM3) (Predict-GS" in dev and "cpu (HAC" in dev
 
 
 def test_report_with_single_points_and_lpips(tmp_path):
@@ -186,9 +186,9 @@ def test_elements_table_separates_count_from_bits_per_value():
     assert len(rows) == 2 * len(res["runs"])
     off = {(r[0], r[1]): r for r in rows if r[2] == "offsets"}
     # baseline: 60000 values at 4 bits; predict-gs: +30% values at -10% bits per value
-    assert off[("baseline", "0.004")][3:] == ["60000", "30000", "4.000", "ref", "ref", "40.0%"]
-    assert off[("predict-gs", "0.004")][3:] == ["78000", "35100", "3.600", "+30.0%", "-10.0%", "52.0%"]
-    feat = [r for r in rows if r[0] == "predict-gs" and r[2] == "residual"]
+    assert off[("HAC", "0.004")][3:] == ["60000", "30000", "4.000", "ref", "ref", "40.0%"]
+    assert off[("Predict-GS", "0.004")][3:] == ["78000", "35100", "3.600", "+30.0%", "-10.0%", "52.0%"]
+    feat = [r for r in rows if r[0] == "Predict-GS" and r[2] == "residual"]
     assert len(feat) == 3 and all(r[6:8] == ["-", "-"] for r in feat)   # no residual in HAC
     # the speed table shows Gaussians per view and the change against the baseline
     speed = txt.split("Speed against error", 1)[1]
@@ -204,8 +204,8 @@ def test_elements_table_skips_archived_rows_without_counts():
             r.pop("attributes")
     txt = format_report(res)
     rows = _rows_of(txt, "Coded values and bits per value")
-    assert {r[0] for r in rows} == {"baseline", "predict-gs"}
-    assert "not shown (records archived before these counts were kept): entropy-factorized" in txt
+    assert {r[0] for r in rows} == {"HAC", "Predict-GS"}
+    assert "not shown (records archived before these counts were kept): HAC+entropy-factorized" in txt
 
 
 def test_alive_table_splits_gaussians_per_view():
@@ -224,11 +224,11 @@ def test_alive_table_splits_gaussians_per_view():
     txt = format_report(res)
     rows = _rows_of(txt, "Where the Gaussians per view come from")
     by = {(r[0], r[1]): r for r in rows}
-    assert {r[0] for r in rows} == {"baseline", "predict-gs"}
-    assert by[("baseline", "0.004")][2:] == ["50000", "40.0%", "20.0%", "40000"]
-    assert by[("predict-gs", "0.004")][2:] == ["50000", "(+0.0%)", "52.0%", "(+30.0%)", "20.0%",
+    assert {r[0] for r in rows} == {"HAC", "Predict-GS"}
+    assert by[("HAC", "0.004")][2:] == ["50000", "40.0%", "20.0%", "40000"]
+    assert by[("Predict-GS", "0.004")][2:] == ["50000", "(+0.0%)", "52.0%", "(+30.0%)", "20.0%",
                                               "(+0.0%)", "52000", "(+30.0%)"]
-    assert ("not shown (records archived before this breakdown was kept): entropy-factorized"
+    assert ("not shown (records archived before this breakdown was kept): HAC+entropy-factorized"
             in txt)
 
 
@@ -246,9 +246,9 @@ def test_rate_term_line_says_what_one_lambda_weighs_per_method():
         if r["method"] == "entropy-factorized":
             r.pop("attributes")
     line = dict(protocol_lines(res))["rate term"]
-    assert ": baseline 80, predict-gs 55;" in line
-    assert "against baseline's: predict-gs 1.45x" in line and "entropy-factorized" not in line
-    assert "rate term" in format_report(res) and "predict-gs 1.45x" in format_report(res)
+    assert ": HAC 80, Predict-GS 55;" in line
+    assert "against HAC's: Predict-GS 1.45x" in line and "entropy-factorized" not in line
+    assert "rate term" in format_report(res) and "Predict-GS 1.45x" in format_report(res)
 
 
 def seeded_results():
@@ -321,6 +321,8 @@ def test_a_lambda_missing_a_seed_stays_off_the_mean_curve():
 def test_survey_csv_matches_the_results(tmp_path):
     import csv
 
+    from baseline.eval.report import method_label
+
     for res in (stored_results(), seeded_results()):
         for i, r in enumerate(res["runs"]):
             r["masks_on"] = {"on": 1000 + i, "total": 5000}
@@ -332,7 +334,7 @@ def test_survey_csv_matches_the_results(tmp_path):
         per_run = [x for x in rows if "mean of" not in x["Submethod"]]
         assert len(per_run) == len(res["runs"])
         for r in res["runs"]:
-            name = f"{r['method']} lambda={r['lmbda']:g}" + (
+            name = f"{method_label(r['method'])} lambda={r['lmbda']:g}" + (
                 f" seed={r['seed']}" if r.get("seed") is not None else "")
             x = next(x for x in per_run if x["Submethod"] == name)
             assert float(x["PSNR"]) == pytest.approx(r["psnr"], abs=1e-4)
@@ -344,7 +346,7 @@ def test_survey_csv_matches_the_results(tmp_path):
         for x in means:
             m, lam = x["Submethod"].split(" lambda=")
             lam = float(lam.split()[0])
-            rs = [r for r in res["runs"] if r["method"] == m and r["lmbda"] == lam]
+            rs = [r for r in res["runs"] if method_label(r["method"]) == m and r["lmbda"] == lam]
             assert float(x["Size [Bytes]"]) == pytest.approx(sum(r["bytes"] for r in rs) / 2)
             assert float(x["PSNR"]) == pytest.approx(sum(r["psnr"] for r in rs) / 2, abs=1e-4)
         assert "results.csv" in paths["report"].read_text()
@@ -378,9 +380,29 @@ def test_census_table_cuts_each_run_to_its_baselines_count():
     txt = format_report(res)
     rows = _rows_of(txt, "Gaussian census")
     by = {(r[0], r[1]): r for r in rows}
-    assert by[("baseline", "0.004")][2:7] == ["40000", "20.0%", "-", "-", "10.0%"]
-    p = by[("predict-gs", "0.004")]
+    assert by[("HAC", "0.004")][2:7] == ["40000", "20.0%", "-", "-", "10.0%"]
+    p = by[("Predict-GS", "0.004")]
     assert p[2:5] == ["60000", "30.0%", "32.0%"]
     # 40000 lies halfway between the sweep's 50000 (27.3 dB) and 30000 (26.1 dB): 26.7 dB
     assert p[-2:] == ["26.700", "(-0.800)"]
     assert "not shown (records archived before the census was kept)" in txt
+
+
+def test_method_labels_are_the_names_users_know():
+    """Tables, legends and CSVs name methods as users do; run ids stay as they are."""
+    from baseline.eval.report import method_label
+
+    assert method_label("baseline") == "HAC"
+    assert method_label("predict-gs") == "Predict-GS"
+    assert method_label("predict-gs+masks-lr-scaled") == "Predict-GS+masks-lr-scaled"
+    assert method_label("masks-lr-scaled") == "HAC+masks-lr-scaled"
+    assert method_label("baseline", ["cpu", "hacpp"]) == "HAC++"
+    assert method_label("predict-gs", ["cpu", "hacpp"]) == "Predict-GS"
+    assert method_label("scaffold") == "Scaffold-GS"
+    res = stored_results()
+    txt = format_report(res, markdown=True)
+    assert "| HAC | 0.004 |" in txt and "| Predict-GS | 0.004 |" in txt
+    assert "| baseline |" not in txt and "| predict-gs |" not in txt
+    from baseline.eval.report import survey_rows
+    assert {r["Submethod"].split()[0] for r in survey_rows(res)} == {
+        "HAC", "Predict-GS", "HAC+entropy-factorized"}

@@ -204,9 +204,14 @@ def _f(v, nd):
 
 
 def format_benchmark(res: dict, markdown: bool = True) -> str:
+    from baseline.eval.report import method_label
+
+    def name(m):
+        return method_label(m, res.get("common_patches", ()))
+
     head = ["method", "lambda", "scenes", "PSNR", "SSIM", "LPIPS", "size (MB)", "feature (MB)",
             "others (MB)", "train (s)", "encode (s)", "decode (s)", "FPS", "Gaussians/view"]
-    rows = [[r["method"], f"{r['lmbda']:g}", str(r["n_scenes"]), _f(r["psnr"], 3),
+    rows = [[name(r["method"]), f"{r['lmbda']:g}", str(r["n_scenes"]), _f(r["psnr"], 3),
              _f(r["ssim"], 4), _f(r["lpips"], 4), _f(r["mb"], 4), _f(r["feature_mb"], 4),
              _f(r["others_mb"], 4), _f(r["train_s"], 0), _f(r["encode_s"], 2),
              _f(r["decode_s"], 2), _f(r["fps"], 1), _f(r["gaussians"], 0)]
@@ -214,7 +219,7 @@ def format_benchmark(res: dict, markdown: bool = True) -> str:
     bd_head = ["method"] + list(res["scenes"]) + ["mean"]
     bd_rows = []
     for b in res["bd"]:
-        cells = [b["method"]]
+        cells = [name(b["method"])]
         for s in res["scenes"]:
             v = b["per_scene"].get(s)
             cells.append("-" if not v or v["bd_rate"] is None else

@@ -72,7 +72,12 @@ class RunSpec:
 
     @property
     def label(self) -> str:
-        return f"{self.method.name} lambda={self.lmbda:g}" + (
+        """What progress lines and lists call the run: the method's user-facing name (HAC,
+        Predict-GS, ...; :func:`baseline.eval.report.method_label`), lambda and seed."""
+        from baseline.eval.report import method_label
+
+        common = [p for p in self.cfg.patches if p not in self.method.patches]
+        return f"{method_label(self.method.name, common)} lambda={self.lmbda:g}" + (
             f" seed={self.seed}" if self.seed is not None else "")
 
 
@@ -591,8 +596,8 @@ def run_compare(scene: str | Path, out: str | Path, vs: list[str] = (),
                 panel_views: Optional[list[int]] = None) -> dict:
     """Run (or resume) a comparison; write ``out/results.json``, ``out/report.md`` and plots.
 
-    ``only``: bring only the runs of these methods (names as in the report: ``baseline``, a
-    ``--vs`` value) to the finished state, and report those; the others are left as they are.
+    ``only``: bring only the runs of these methods (``baseline``, a ``--vs`` value, or a name as
+    the report shows it: ``HAC``, ``Predict-GS``) to the finished state, and report those; the others are left as they are.
     This splits a comparison across processes or machines sharing ``out`` (e.g. one process per
     core: ``taskset -c 0 pgs compare ... --only baseline`` beside ``taskset -c 1 ... --only
     predict-gs``); a final invocation without it reuses every finished run for the full report.
@@ -630,7 +635,11 @@ def run_compare(scene: str | Path, out: str | Path, vs: list[str] = (),
     ref_spec = (plan_reference(out, ref_method, list(common_patches), list(sets))
                 if ref_method is not None else None)
     if only:
+        from baseline.eval.report import method_label
+
         names = [m.name for m in methods] + ([REFERENCE] if ref_spec is not None else [])
+        by_label = {method_label(m.name, common_patches): m.name for m in methods}
+        only = [by_label.get(o, o) for o in only]          # "HAC" = "baseline", ...
         unknown = [o for o in only if o not in names]
         if unknown:
             raise ValueError(f"--only {', '.join(unknown)}: not a method of this comparison "

@@ -153,7 +153,7 @@ def write_panels(results: dict, out_dir: str | Path, views: Optional[list[int]] 
     (the first seed of each lambda) and each view in ``views`` (test-view indices; default
     ``[0]``), every method whose ``model.pgs`` is present. Returns the panels' records; runs
     reported from archived records (no model file) are left out and named."""
-    from baseline.eval.report import method_names, runs_of
+    from baseline.eval.report import label, method_names, runs_of
     from baseline.run import load_scene_for
 
     views = [0] if views is None else list(views)
@@ -169,7 +169,7 @@ def write_panels(results: dict, out_dir: str | Path, views: Optional[list[int]] 
                 continue
             r = rs[0]                                   # the lowest seed
             f = Path(r["run_dir"]) / "model.pgs"
-            (entries if f.exists() else missing).append((m, f))
+            (entries if f.exists() else missing).append((label(results, m), f))
         if not entries:
             continue
         if scene is None:

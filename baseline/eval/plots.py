@@ -12,7 +12,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from baseline.eval.report import (GROUP_ORDER, MB, method_names, rate_points, runs_of,
+from baseline.eval.report import (GROUP_ORDER, MB, label, method_names, rate_points, runs_of,
                                    seed_mean_points, seeds_of)
 from baseline.fileio import atomic_path
 
@@ -56,7 +56,7 @@ def plot_rd(results: dict, path: Path) -> Path:
             continue
         c, mk = style[m]
         ax.plot([r["mb"] for r in rs], [r["psnr"] for r in rs], marker=mk, color=c, lw=1.8, ms=7,
-                label=m)
+                label=label(results, m))
         spots: dict = {}          # points that coincide on the plot share one label
         for r in rs:
             key = (f"{r['mb']:.3g}", f"{r['psnr']:.2f}")
@@ -67,7 +67,7 @@ def plot_rd(results: dict, path: Path) -> Path:
     ref = results.get("reference")
     if ref:
         ax.axhline(ref["psnr"], color="0.35", ls="--", lw=1.2,
-                   label=f"uncompressed {ref['method']} ({ref['mb']:.3g} MB as float32)")
+                   label=f"uncompressed {label(results, ref['method'])} ({ref['mb']:.3g} MB as float32)")
     ax.set_xlabel("size of the .pgs file (MB = 2^20 bytes)")
     ax.set_ylabel("PSNR on the test views (dB)")
     ax.set_title(f"Rate-distortion: {Path(results.get('scene', '')).name}")
@@ -94,7 +94,8 @@ def _rd_seeded(results: dict, ax, style) -> None:
                     yerr=[[p["psnr"] - p["psnr_min"] for p in pts],
                           [p["psnr_max"] - p["psnr"] for p in pts]],
                     marker=mk, color=c, lw=1.8, ms=7, capsize=3,
-                    label=m if pts[0]["n"] < 2 else f"{m} (mean of {pts[0]['n']} seeds)")
+                    label=label(results, m) if pts[0]["n"] < 2
+                    else f"{label(results, m)} (mean of {pts[0]['n']} seeds)")
         for p in pts:
             ax.annotate(f"λ={p['lmbda']:g}", (p["mb"], p["psnr"]), textcoords="offset points",
                         xytext=(5, -11), fontsize=7.5, color=c)
@@ -110,7 +111,7 @@ def plot_bits(results: dict, path: Path) -> Path:
     for p in points:
         for r in p:
             xs.append(x)
-            labels.append(f"{r['method']}\nλ={r['lmbda']:g}"
+            labels.append(f"{label(results, r['method'])}\nλ={r['lmbda']:g}"
                           + (f" s{r['seed']}" if r.get("seed") is not None else ""))
             x += 1.0
         x += 0.6
@@ -145,17 +146,17 @@ def plot_speed(results: dict, path: Path) -> Path:
             continue
         c, mk = style[m]
         ax_f.plot([r["fps"] for r in rs], [r["psnr"] for r in rs], ls="", marker=mk, color=c, ms=8,
-                  label=m + (" (cached)" if any(r["has_cache"] for r in rs) else ""))
+                  label=label(results, m) + (" (cached)" if any(r["has_cache"] for r in rs) else ""))
         cached = [r for r in rs if r["has_cache"] and r["fps_nocache"] is not None]
         if cached:
             any_cache = True
             ax_f.plot([r["fps_nocache"] for r in cached], [r["psnr"] for r in cached], ls="",
-                      marker=mk, color=c, ms=8, mfc="none", label=f"{m} (no cache)")
+                      marker=mk, color=c, ms=8, mfc="none", label=f"{label(results, m)} (no cache)")
             for r in cached:
                 ax_f.annotate("", xy=(r["fps"], r["psnr"]), xytext=(r["fps_nocache"], r["psnr"]),
                               arrowprops=dict(arrowstyle="->", color=c, alpha=0.5))
         ax_t.plot([r["train_time_s"] for r in rs], [r["psnr"] for r in rs], ls="", marker=mk,
-                  color=c, ms=8, label=m)
+                  color=c, ms=8, label=label(results, m))
     ax_f.set_xlabel("render speed of the decoded model (FPS)")
     ax_f.set_title("Rendering speed vs quality" + (" (hollow: without cache)" if any_cache else ""),
                    fontsize=10)

@@ -31,6 +31,40 @@ GROUP_ORDER = ["feature", "anchor", "scaling", "offsets", "masks", "hash", "mlps
 BD_MIN_POINTS = 3
 
 
+# ------------------------------------------------------------------------------ names
+# What users call the methods. A comparison's method ids (run folders, records, --only) are
+# "baseline" (the common patches alone) and the contenders' patches joined by "+"; every table,
+# legend and CSV shows these names instead: the method a patch selects, then the other patches.
+METHOD_PATCH_LABELS = {"predict-gs": "Predict-GS", "predict-gs-high-rate": "Predict-GS-high-rate",
+                       "hacpp": "HAC++", "scaffold": "Scaffold-GS"}
+
+
+def base_label(common_patches) -> str:
+    """The name of the baseline of a comparison: HAC, or the method its common patches select."""
+    for pt in common_patches or ():
+        if pt in METHOD_PATCH_LABELS:
+            return METHOD_PATCH_LABELS[pt]
+    return "HAC"
+
+
+def method_label(name: str, common_patches=()) -> str:
+    """``baseline`` -> ``HAC``; ``predict-gs+masks-lr-scaled`` -> ``Predict-GS+masks-lr-scaled``;
+    ``entropy-factorized`` (a HAC variant) -> ``HAC+entropy-factorized``. No spaces, so a label
+    is one word in a table."""
+    base = base_label(common_patches)
+    if name == "baseline":
+        return base
+    parts = [p for p in name.split("+") if p]
+    if parts and parts[0] in METHOD_PATCH_LABELS:
+        return "+".join([METHOD_PATCH_LABELS[parts[0]], *parts[1:]])
+    return "+".join([base, *parts])
+
+
+def label(results: dict, method: str) -> str:
+    """The user-facing name of a method of ``results`` (see :func:`method_label`)."""
+    return method_label(method, results.get("common_patches", ()))
+
+
 # ------------------------------------------------------------------------------ selection
 def method_names(results: dict) -> list[str]:
     names = [m["name"] for m in results.get("methods", [])]
@@ -249,7 +283,7 @@ def quality_table(results: dict) -> Table:
     rows = []
     for r in ordered_runs(results):
         p = baseline_partner(results, r)
-        rows.append([r["method"], _lam(r), _f(r["psnr"], 3),
+        rows.append([label(results, r["method"]), _lam(r), _f(r["psnr"], 3),
                      _f((r.get("pre_encode") or {}).get("psnr"), 3), _f(r["ssim"], 4),
                      "unavailable" if r["lpips"] is None else _f(r["lpips"], 4),
                      _f(r["mb"], 4),
@@ -261,7 +295,7 @@ def quality_table(results: dict) -> Table:
              _lpips_note(results)]
     return Table("Quality and size (decoded file)",
                  ["method", "lambda", "PSNR (dB)", "pre-encode", "SSIM", "LPIPS", "size (MB)",
-                  "vs baseline", "anchors"], rows, notes, left=2)
+                  f"vs {label(results, 'baseline')}", "anchors"], rows, notes, left=2)
 
 
 def groups_table(results: dict) -> Table:
@@ -269,7 +303,7 @@ def groups_table(results: dict) -> Table:
     present = [g for g in GROUP_ORDER if any(g in r["groups"] for r in runs)]
     extra = sorted({g for r in runs for g in r["groups"]} - set(GROUP_ORDER))
     groups = present + extra
-    rows = [[r["method"], _lam(r)] + [_f(r["groups"].get(g, 0) / MB, 4) for g in groups]
+    rows = [[label(results, r["method"]), _lam(r)] + [_f(r["groups"].get(g, 0) / MB, 4) for g in groups]
             + [_f(r["mb"], 4)] for r in runs]
     return Table("Bit allocation by group (MB)", ["method", "lambda"] + groups + ["total"], rows,
                  ["feature = the feature provider's coded attribute(s) and sections (HAC: feat; "
@@ -285,7 +319,7 @@ def table3(results: dict) -> Table:
         sav = (["ref"] * 3 if _is_base(results, r) else
                [_pct(_saving(feat, p and p["groups"].get("feature", 0))),
                 _pct(_saving(oth, p and others_bytes(p))), _pct(_saving(r["bytes"], p and p["bytes"]))])
-        rows.append([r["method"], _lam(r), _f(feat / MB, 4), _f(oth / MB, 4), _f(r["mb"], 4)] + sav)
+        rows.append([label(results, r["method"]), _lam(r), _f(feat / MB, 4), _f(oth / MB, 4), _f(r["mb"], 4)] + sav)
     return Table("Feature vs others (as the paper's Table 3)",
                  ["method", "lambda", "feature (MB)", "others (MB)", "total (MB)",
                   "feature saving", "others saving", "total saving"], rows,
@@ -305,7 +339,8 @@ def section_tables(results: dict) -> list[Table]:
         if not point:
             continue
         shared = len({r["lmbda"] for r in point}) == 1
-        heads = [r["method"] if shared else f"{r['method']} (lambda {_lam(r)})" for r in point]
+        heads = [label(results, r["method"]) if shared
+                 else f"{label(results, r['method'])} (lambda {_lam(r)})" for r in point]
         names: list[tuple[str, str]] = []
         for r in point:
             for s in r["sections"]:
@@ -344,7 +379,7 @@ def elements_table(results: dict) -> Optional[Table]:
         for a in r["attributes"]:
             ref = pa.get(a["section"])
             bpe = a["bits_per_element"]
-            rows.append([r["method"], _lam(r), a["section"], str(a["elements"]), str(a["bytes"]),
+            rows.append([label(results, r["method"]), _lam(r), a["section"], str(a["elements"]), str(a["bytes"]),
                          _f(bpe, 3),
                          ("ref" if _is_base(results, r) else
                           _pct(_change(a["elements"], ref and ref["elements"]))),
@@ -357,7 +392,8 @@ def elements_table(results: dict) -> Optional[Table]:
              "Read from each file."]
     notes += _not_shown(results, lambda r: bool(r.get("attributes")), "these counts were")
     return Table("Coded values and bits per value", ["method", "lambda", "attribute", "values",
-                 "bytes", "bits/value", "values vs baseline", "bits/value vs baseline",
+                 "bytes", "bits/value", f"values vs {label(results, 'baseline')}",
+                 f"bits/value vs {label(results, 'baseline')}",
                  "masks on"], rows, notes, left=3)
 
 
@@ -366,7 +402,7 @@ def speed_table(results: dict) -> Table:
     any_cache = False
     for r in ordered_runs(results):
         any_cache |= bool(r["has_cache"])
-        rows.append([r["method"], _lam(r), _f(r["psnr"], 3), _f(r["mb"], 4), _f(r["train_time_s"], 1),
+        rows.append([label(results, r["method"]), _lam(r), _f(r["psnr"], 3), _f(r["mb"], 4), _f(r["train_time_s"], 1),
                      _f(r["s_per_it"], 4), _f(r["encode_s"], 3), _f(r["decode_s"], 3),
                      _f(r["fps"], 1), _f(r["fps_nocache"], 1) if r["has_cache"] else "(no cache)",
                      _with_change(results, r, "gaussians_mean", _count)])
@@ -398,7 +434,7 @@ def alive_table(results: dict) -> Optional[Table]:
     runs = [r for r in ordered_runs(results) if r.get("mask_on_fraction") is not None]
     if not runs:
         return None
-    rows = [[r["method"], _lam(r), _with_change(results, r, "visible_anchors_mean", _count),
+    rows = [[label(results, r["method"]), _lam(r), _with_change(results, r, "visible_anchors_mean", _count),
              _with_change(results, r, "mask_on_fraction", _share),
              _with_change(results, r, "opacity_kept_fraction", _share),
              _with_change(results, r, "gaussians_mean", _count)] for r in runs]
@@ -435,7 +471,7 @@ def census_table(results: dict) -> Optional[Table]:
         if p is not None and p.get("census") and c["gaussians"] > p["census"]["gaussians"]:
             v = psnr_at_gaussians(c["sweep"], p["census"]["gaussians"])
             cut = "-" if v is None else f"{v:.3f} ({v - c['sweep'][0]['psnr']:+.3f})"
-        rows.append([r["method"], _lam(r), _count(c["gaussians"]), _share(c["kept_share"]),
+        rows.append([label(results, r["method"]), _lam(r), _count(c["gaussians"]), _share(c["kept_share"]),
                      _share(c["kept_share_coarse"]) if c["refiner"] else "-",
                      (f"{_share(c['revived_share'])} / {_share(c['removed_share'])}"
                       if c["refiner"] else "-"),
@@ -456,7 +492,7 @@ def census_table(results: dict) -> Optional[Table]:
     return Table("Gaussian census", ["method", "lambda", "Gaussians/view", "kept",
                                      "corrections off", "revived / removed",
                                      "anchors drawing 0 / 1-3 / 4-7 / 8+", "same pattern: nn / random",
-                                     "kept by birth", "cut to baseline's count: PSNR"],
+                                     "kept by birth", f"cut to {label(results, 'baseline')}'s count: PSNR"],
                  rows, notes, left=2)
 
 
@@ -469,7 +505,7 @@ def reference_table(results: dict) -> Optional[Table]:
     rows = [[f"reference: {ref['method']}", "-", _f(ref["psnr"], 3), "ref", _f(ref["ssim"], 4),
              _f(ref["mb"], 4), "1x"]]
     for r in ordered_runs(results):
-        rows.append([r["method"], _lam(r), _f(r["psnr"], 3), f"{r['psnr'] - ref['psnr']:+.3f}",
+        rows.append([label(results, r["method"]), _lam(r), _f(r["psnr"], 3), f"{r['psnr'] - ref['psnr']:+.3f}",
                      _f(r["ssim"], 4), _f(r["mb"], 4), f"{ref['float32_bytes'] / r['bytes']:.1f}x"])
     notes = [f"Reference: the uncompressed run `{' + '.join(ref['patches'])}` on the same "
              f"protocol ({ref['iterations']} iterations, {ref['anchors']} anchors, "
@@ -477,7 +513,7 @@ def reference_table(results: dict) -> Optional[Table]:
              f"views (nothing coded); its size counts every value the renderer reads as float32 "
              f"(anchor positions, features, offsets, scalings, networks). 'x smaller' = that "
              f"size / the .pgs file's size; 'vs ref' = PSNR change in dB."]
-    other = sorted({f"{r['method']} {_lam(r)}" for r in ordered_runs(results)
+    other = sorted({f"{label(results, r['method'])} {_lam(r)}" for r in ordered_runs(results)
                     if r["iterations"] != ref["iterations"]})
     if other:
         notes.append("trained for another number of iterations than the reference: "
@@ -508,7 +544,7 @@ def _share(v: float) -> str:
 
 def _not_shown(results: dict, kept: Callable[[dict], bool], what: str) -> list[str]:
     """A note naming the runs a table leaves out: records archived before ``what`` kept."""
-    skipped = [f"{r['method']} {_lam(r)}" for r in ordered_runs(results) if not kept(r)]
+    skipped = [f"{label(results, r['method'])} {_lam(r)}" for r in ordered_runs(results) if not kept(r)]
     return ([f"not shown (records archived before {what} kept): " + ", ".join(skipped)]
             if skipped else [])
 
@@ -520,11 +556,11 @@ def bd_table(results: dict) -> Table:
     for b in bd:
         mark = ""
         if b["note"]:
-            foot.append(f"({len(foot) + 1}) {b['method']}: {b['note']}")
+            foot.append(f"({len(foot) + 1}) {label(results, b['method'])}: {b['note']}")
             mark = f"({len(foot)})"
         sd = b.get("seed")
         curve = ([("seed-mean curves" if sd == "mean" else f"seed {sd}")] if seeded else [])
-        rows.append([b["method"]] + curve + [f"{b['points']} vs {b['baseline_points']}",
+        rows.append([label(results, b["method"])] + curve + [f"{b['points']} vs {b['baseline_points']}",
                      "-" if b["bd_rate"] is None else f"{b['bd_rate']:+.2f}",
                      "-" if b["bd_psnr"] is None else f"{b['bd_psnr']:+.3f}", mark])
     notes = foot + ["Piecewise cubic (PCHIP) interpolation of log10(size) vs PSNR (BD-rate) "
@@ -537,7 +573,7 @@ def bd_table(results: dict) -> Table:
                      "curves: per lambda the mean size and PSNR over the seeds (a lambda "
                      "counts once every seed has finished), the comparison's answer; the "
                      "per-seed rows show how far one seed moves it.")
-    return Table(f"Bjontegaard deltas against {results.get('baseline', 'baseline')}",
+    return Table(f"Bjontegaard deltas against {label(results, results.get('baseline', 'baseline'))}",
                  ["method"] + (["curve"] if seeded else []) +
                  ["points", "BD-rate (%)", "BD-PSNR (dB)", "note"], rows, notes,
                  left=2 if seeded else 1)
@@ -562,7 +598,7 @@ def seed_table(results: dict) -> Optional[Table]:
                 sp = (f"{100 * (hi - lo) / v:.1f}%" if key in ("mb", "gaussians_mean", "anchors")
                       and v else f"{hi - lo:.{nd}f}")
                 return f"{v:.{nd}f} ({sp})"
-            rows.append([m, f"{pt['lmbda']:g}", str(pt["n"]), ms("psnr", 3), ms("ssim", 4),
+            rows.append([label(results, m), f"{pt['lmbda']:g}", str(pt["n"]), ms("psnr", 3), ms("ssim", 4),
                          ms("mb", 4), ms("mask_on_fraction", 1, pct=True),
                          ms("gaussians_mean", 0), ms("anchors", 0)])
     return Table(f"Seed mean and spread (seeds {', '.join(map(str, seeds))})",
@@ -581,7 +617,7 @@ def protocol_lines(results: dict) -> list[tuple[str, str]]:
     def per_method(key: str) -> str:
         vals = {}
         for r in runs:
-            vals.setdefault(str(r.get(key, "cpu" if key == "device" else "-")), []).append(f"{r['method']} {_lam(r)}")
+            vals.setdefault(str(r.get(key, "cpu" if key == "device" else "-")), []).append(f"{label(results, r['method'])} {_lam(r)}")
         if len(vals) <= 1:
             return next(iter(vals), "-")
         return "; ".join(f"{v} ({', '.join(who)})" for v, who in vals.items())
@@ -597,8 +633,10 @@ def protocol_lines(results: dict) -> list[tuple[str, str]]:
         ("split", f"{prot.get('split', '-')} ({prot.get('n_train', '?')} train / "
                   f"{prot.get('n_test', '?')} test views)"),
         ("background", str(prot.get("background", "-"))),
-        ("methods", "; ".join(f"{m['name']} = common patches" + (" + " + " + ".join(m["patches"])
-                                                                 if m["patches"] else "")
+        ("methods", "; ".join(f"{label(results, m['name'])} = common patches"
+                              + (" + " + " + ".join(m["patches"]) if m["patches"] else "")
+                              + ("" if label(results, m["name"]) == m["name"]
+                                 else f" (runs: {m['name']}-*)")
                               for m in results.get("methods", []))),
         ("common patches", ", ".join(results.get("common_patches", [])) or "(none)"),
         ("--set", ", ".join(results.get("sets", [])) or "(none)"),
@@ -620,7 +658,7 @@ def protocol_lines(results: dict) -> list[tuple[str, str]]:
     if any(v and v != cur for v in tv):
         items.append(("note", "some runs were trained with other versions: see each run's "
                               "results.json"))
-    kept = [f"{r['method']} {_lam(r)}" for r in runs if r.get("records_only")]
+    kept = [f"{label(results, r['method'])} {_lam(r)}" for r in runs if r.get("records_only")]
     if kept:
         items.append(("from records", ", ".join(kept) + ": reported from their archived records "
                       "(measured when they were trained; no model file here)"))
@@ -678,13 +716,13 @@ def _rate_term_line(results: dict, runs: list) -> str:
             "E = coded values per anchor (HAC's bits per parameter; entropy.rate_values_per_anchor)")
     if not per_method:
         return line + " (E not in these records)"
-    line += ": " + ", ".join(f"{m} {e}" for m, e in per_method.items())
+    line += ": " + ", ".join(f"{label(results, m)} {e}" for m, e in per_method.items())
     ref_name = results.get("baseline", "baseline")
     ref_m = ref_name if ref_name in per_method else next(iter(per_method))
     ref_e = per_method[ref_m]
-    other = [f"{m} {ref_e / e:.2f}x" for m, e in per_method.items() if e != ref_e]
+    other = [f"{label(results, m)} {ref_e / e:.2f}x" for m, e in per_method.items() if e != ref_e]
     if other:
-        line += (f"; at one lambda a coded bit weighs, against {ref_m}'s: " + ", ".join(other)
+        line += (f"; at one lambda a coded bit weighs, against {label(results, ref_m)}'s: " + ", ".join(other)
                  + " (equal lambda is not equal rate pressure: compare at equal PSNR, BD-rate)")
     return line
 
@@ -725,7 +763,8 @@ def format_report(results: dict, markdown: bool = False) -> str:
     prot = protocol_lines(results)
     if markdown:
         parts = ["# Comparison report", "",
-                 f"Scene `{results.get('scene', '-')}`; baseline `{results.get('baseline')}`; "
+                 f"Scene `{results.get('scene', '-')}`; baseline "
+                 f"{label(results, results.get('baseline', 'baseline'))}; "
                  f"every number is measured on the decoded `.pgs` file or read from the runs' "
                  f"records ({len(results['runs'])} runs)."]
         if not results.get("complete", True):
@@ -787,7 +826,7 @@ def survey_rows(results: dict) -> list[dict]:
     rows = []
     for m in method_names(results):
         for r in runs_of(results, m):
-            name = f"{m} lambda={r['lmbda']:g}" + (f" seed={r['seed']}" if r.get("seed") is not None
+            name = f"{label(results, m)} lambda={r['lmbda']:g}" + (f" seed={r['seed']}" if r.get("seed") is not None
                                                    else "")
             g = gaussians_count(r)
             rows.append({"Submethod": name, "PSNR": fmt(r["psnr"], 4), "SSIM": fmt(r["ssim"], 4),
@@ -799,7 +838,7 @@ def survey_rows(results: dict) -> list[dict]:
             rs = [r for r in runs_of(results, m) if r["lmbda"] == pt["lmbda"]]
             lp = [r.get("lpips") for r in rs]
             gs = [gaussians_count(r) for r in rs]
-            rows.append({"Submethod": f"{m} lambda={pt['lmbda']:g} (mean of {pt['n']} seeds)",
+            rows.append({"Submethod": f"{label(results, m)} lambda={pt['lmbda']:g} (mean of {pt['n']} seeds)",
                          "PSNR": fmt(pt["psnr"], 4), "SSIM": fmt(pt["ssim"], 4),
                          "LPIPS": "" if None in lp else fmt(sum(lp) / len(lp), 4),
                          "Size [Bytes]": f"{pt['bytes']:.1f}",
