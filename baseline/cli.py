@@ -334,10 +334,20 @@ def cmd_benchmark(args) -> int:
     return 0 if not res["failed"] else 1
 
 
+DEMO_LAMBDAS = (0.004, 0.002, 0.001)
+DEMO_SCOPE = ("These figures are the embedded synthetic scene's (1k iterations, one seed): a "
+              "check that the pipelines run and a picture of the comparison, not a claim about "
+              "real scenes (docs/RESULTS.md has those).")
+
+
 def cmd_demo(args) -> int:
-    """The main job on the embedded default scene: baseline (HAC) vs Predict-GS, side by side."""
+    """The main job on the embedded default scene: HAC vs Predict-GS at three rate points, side
+    by side. The runs train in parallel, one per core (the local executor); the report ends in
+    a verdict (BD-rate, equal-lambda changes, paired FPS and training-time ratios)."""
     from baseline.data.synthetic import make_scene
-    from baseline.eval.compare import run_compare
+    from baseline.eval.compare import parse_methods, parse_reference, plan_runs, run_compare
+    from baseline.eval.executors import Job, LocalExecutor
+    from baseline.train.trainer import available_cores
 
     out = Path(args.out)
     scene = out / "scene"
@@ -345,10 +355,32 @@ def cmd_demo(args) -> int:
         make_scene(scene)
         print(f"wrote the default synthetic scene to {scene}")
     t0 = time.perf_counter()
+    lambdas = list(args.lambdas or DEMO_LAMBDAS)
+    common = ["demo"] + args.patch
+    methods = parse_methods(args.vs or ["predict-gs"])
+    ref = None if args.reference == "none" else args.reference
+    jobs = [Job(scene=str(scene.resolve()), out=str(out.resolve()), method=s.method.name,
+                method_patches=tuple(s.method.patches), lmbda=s.lmbda, seed=None,
+                common_patches=tuple(common), sets=tuple(args.set), label=s.label)
+            for s in plan_runs(out, methods, lambdas, common, args.set)]
+    jobs.sort(key=lambda j: j.method == "baseline")          # the longer trainings first
+    if ref is not None:
+        m = parse_reference(ref)
+        jobs.append(Job(scene=str(scene.resolve()), out=str(out.resolve()), method=m.name,
+                        method_patches=tuple(m.patches), lmbda=None, seed=None,
+                        common_patches=tuple(common), sets=tuple(args.set),
+                        label=f"reference {m.name}", reference=True))
+    n = max(1, min(available_cores(), len(jobs)))
+    print(f"demo: {len(jobs)} run(s) on {n} core(s), one per core")
     try:
-        run_compare(str(scene), out, vs=args.vs or ["predict-gs"], lambdas=args.lambdas,
-                    common_patches=["demo"] + args.patch, sets=args.set, progress=True, plots=True,
-                    reference=None if args.reference == "none" else args.reference)
+        res = LocalExecutor(jobs=n, progress=True).execute(jobs)
+        if res["failed"]:
+            for label, err in res["failed"]:
+                print(f"demo: {label} failed: {err}", file=sys.stderr)
+            return 1
+        run_compare(str(scene), out, vs=args.vs or ["predict-gs"], lambdas=lambdas,
+                    common_patches=common, sets=args.set, progress=False, plots=True,
+                    reference=ref, paired_fps=True, scope=DEMO_SCOPE)
     except KeyboardInterrupt:
         print("\ninterrupted: run ./run.sh demo again to resume", file=sys.stderr)
         return 130
@@ -548,12 +580,15 @@ def main(argv=None) -> int:
     _config_args(p)
     p.set_defaults(fn=cmd_benchmark)
 
-    p = sub.add_parser("demo", help="the main job: baseline vs Predict-GS on the embedded scene")
+    p = sub.add_parser("demo", help="the main job: HAC vs Predict-GS on the embedded scene, three "
+                       "rate points trained in parallel, a verdict at the end")
     p.add_argument("--out", default="runs/demo")
     p.add_argument("--patch", action="append", default=[], help="extra patches for every run")
     p.add_argument("--vs", action="append", default=[], help="contenders (default predict-gs)")
-    p.add_argument("--lambda", dest="lambdas", type=float, nargs="+", default=None)
-    p.add_argument("--set", action="append", default=[])
+    p.add_argument("--lambda", dest="lambdas", type=float, nargs="+", default=None,
+                   help="rate points (default 0.004 0.002 0.001: three, for a BD-rate)")
+    p.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
+                   help="override one config value for every run")
     p.add_argument("--reference", default="scaffold", metavar="P1[+P2...]",
                    help="the uncompressed run every method is measured against (default "
                         "scaffold; 'none' for none)")

@@ -156,17 +156,55 @@ def test_bench_codec_with_a_trained_run(trained, capsys):
     assert str(run) in out
 
 
-def test_demo_measures_against_the_uncompressed_reference(tmp_path, monkeypatch):
-    """The main job compares baseline and Predict-GS with the uncompressed Scaffold-GS reference
-    by default; '--reference none' leaves it out (the comparison itself is tested in
-    test_compare.py, here only what the command asks for)."""
+def test_demo_trains_three_rate_points_in_parallel_with_the_reference(tmp_path, monkeypatch):
+    """The main job: HAC and Predict-GS at three lambdas plus the uncompressed Scaffold-GS
+    reference, as parallel jobs (the longer Predict-GS trainings first), then the report with
+    the paired FPS bench and the synthetic-scene caveat; '--reference none' leaves it out."""
     import baseline.data.synthetic as synthetic
     import baseline.eval.compare as compare
+    import baseline.eval.executors as executors
 
-    calls = []
+    calls, batches = [], []
     monkeypatch.setattr(synthetic, "make_scene", lambda path: None)
     monkeypatch.setattr(compare, "run_compare", lambda *a, **kw: calls.append(kw))
+    monkeypatch.setattr(executors.LocalExecutor, "execute",
+                        lambda self, jobs: batches.append((self.jobs, jobs)) or {"done": [], "failed": []})
     assert main(["demo", "--out", str(tmp_path / "d")]) == 0
     assert main(["demo", "--out", str(tmp_path / "d"), "--reference", "none"]) == 0
     assert [c["reference"] for c in calls] == ["scaffold", None]
     assert calls[0]["vs"] == ["predict-gs"] and calls[0]["common_patches"] == ["demo"]
+    assert calls[0]["lambdas"] == [0.004, 0.002, 0.001] and calls[0]["paired_fps"]
+    assert "synthetic scene" in calls[0]["scope"]
+    _, jobs = batches[0]
+    assert [(j.method, j.lmbda, j.reference) for j in jobs] == [
+        ("predict-gs", 0.004, False), ("predict-gs", 0.002, False), ("predict-gs", 0.001, False),
+        ("baseline", 0.004, False), ("baseline", 0.002, False), ("baseline", 0.001, False),
+        ("scaffold", None, True)]
+    assert len(batches[1][1]) == 6
+
+
+@pytest.mark.slow
+def test_demo_end_to_end_ends_with_a_verdict(tmp_path, monkeypatch, scene_maker, capsys):
+    """A short demo for real (tiny scene, 200 iterations, parallel workers): six runs, the
+    verdict at the top of report.md and printed last."""
+    import shutil
+
+    import baseline.data.synthetic as synthetic
+
+    small = scene_maker()
+    monkeypatch.setattr(synthetic, "make_scene",
+                        lambda path: shutil.copytree(small, path, dirs_exist_ok=True))
+    out = tmp_path / "demo"
+    assert main(["demo", "--out", str(out), "--reference", "none",
+                 "--set", "train.iterations=200", "--set", "train.threads=1"]) == 0
+    printed = capsys.readouterr().out
+    md = (out / "report.md").read_text()
+    assert "### Verdict" in md and md.index("### Verdict") < md.index("Quality and size")
+    verdict = md.split("### Verdict", 1)[1].split("###", 1)[0]
+    assert "Predict-GS" in verdict and "HAC" in verdict
+    assert ("at equal quality (BD-rate" in verdict) or ("no BD-rate" in verdict)
+    assert "renders at" in verdict and "x HAC's FPS" in verdict
+    assert "synthetic scene" in verdict
+    assert "Verdict" in printed and "demo wall time" in printed
+    res = json.loads((out / "results.json").read_text())
+    assert len(res["runs"]) == 6 and set(res["fps_pair"]) == {"predict-gs"}

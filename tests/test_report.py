@@ -3,7 +3,7 @@ import json
 
 import pytest
 
-from baseline.eval.report import (baseline_partner, compute_bd, format_report, rate_points,
+from baseline.eval.report import (verdict_lines, baseline_partner, compute_bd, format_report, rate_points,
                                   write_report)
 
 MB = 2 ** 20
@@ -406,3 +406,21 @@ def test_method_labels_are_the_names_users_know():
     from baseline.eval.report import survey_rows
     assert {r["Submethod"].split()[0] for r in survey_rows(res)} == {
         "HAC", "Predict-GS", "HAC+entropy-factorized"}
+
+
+def test_verdict_spells_out_who_wins_by_how_much():
+    res = stored_results()
+    res["fps_pair"] = {"predict-gs": {"ratio": 0.8, "rounds": 3, "lmbda": 0.002, "fps": 40.0,
+                                      "fps_ref": 50.0, "threads": 1}}
+    res["scope"] = "the synthetic scene: not a claim about real scenes"
+    v = verdict_lines(res)
+    txt = "\n".join(v)
+    # Predict-GS is 0.8x the bytes at the same PSNR at every lambda: BD-rate -20%
+    assert "Predict-GS is 20.0% smaller than HAC at equal quality (BD-rate -20.00%, one seed)" in txt
+    assert "lambda 0.004: 20.0% smaller, the same PSNR" in txt
+    assert "lambda 0.002: the same size, 0.500 dB lower PSNR" in txt
+    assert "HAC+entropy-factorized is 0.500 dB worse than HAC at equal size" in txt
+    assert "Predict-GS renders at 0.80x HAC's FPS (slower" in txt
+    assert "trains in 1.00x HAC's time" in txt and v[-1] == res["scope"]
+    md = format_report(res, markdown=True)
+    assert md.index("### Verdict") < md.index("Quality and size")

@@ -478,7 +478,8 @@ def run_one(spec: RunSpec, scene_path: str, lpips_fn=None, lpips: Optional[str] 
     from baseline.run import CHECKPOINT_NAME
 
     if "census" not in record and not records_only(spec) \
-            and (spec.dir / CHECKPOINT_NAME).exists():
+            and record.get("encode", {}).get("phase") == "adaptive" \
+            and (spec.dir / CHECKPOINT_NAME).exists():      # a run that reached HAC's coding
         stage("census")
         _stage_census(spec, record)
         done.append("census")
@@ -586,6 +587,37 @@ def _warm_up_rasterizer(specs: list[RunSpec]) -> None:
     kernels()
 
 
+def paired_fps_bench(results: dict, rounds: int = 3, threads: int = 1) -> dict:
+    """Each contender's decoded file timed against the baseline's in one process
+    (:func:`baseline.eval.fpsbench.bench_files`: same views, rounds in rotated order), at the
+    middle rate point both have (the lowest seed): ``{method: {ratio, fps, fps_ref, lmbda,
+    rounds, threads}}``; FPS taken by separate runs at separate times make no ratio."""
+    from baseline.eval.fpsbench import bench_files
+    from baseline.eval.report import method_names, runs_of
+
+    base = results.get("baseline", BASELINE)
+    out = {}
+    for m in method_names(results):
+        if m == base:
+            continue
+        lams = sorted({r["lmbda"] for r in runs_of(results, m)}
+                      & {r["lmbda"] for r in runs_of(results, base)})
+        if not lams:
+            continue
+        lm = lams[len(lams) // 2]
+        pick = [min((r for r in runs_of(results, x) if r["lmbda"] == lm),
+                    key=lambda r: -1 if r.get("seed") is None else r["seed"]) for x in (base, m)]
+        files = [Path(r["run_dir"]) / MODEL_FILE for r in pick]
+        if not all(f.exists() for f in files):
+            continue                       # records only: no file to time
+        res = bench_files([str(f) for f in files], rounds=rounds, threads=threads)
+        plain = [r for r in res["rows"] if r["form"] == "plain"]
+        ref, con = plain[0], plain[-1]
+        out[m] = {"ratio": con["ratio"], "fps": con["fps"], "fps_ref": ref["fps"], "lmbda": lm,
+                  "rounds": rounds, "threads": res["threads"]}
+    return out
+
+
 def run_compare(scene: str | Path, out: str | Path, vs: list[str] = (),
                 lambdas: Optional[list[float]] = None, common_patches: list[str] = (),
                 sets: list[str] = (), lpips_weights: Optional[str] = None,
@@ -593,7 +625,8 @@ def run_compare(scene: str | Path, out: str | Path, vs: list[str] = (),
                 only: Optional[list[str]] = None, remeasure: bool = False,
                 report_only: bool = False, reference: Optional[str] = None,
                 codec: Optional[str] = None, seeds: Optional[list[int]] = None,
-                panel_views: Optional[list[int]] = None) -> dict:
+                panel_views: Optional[list[int]] = None, paired_fps: bool = False,
+                scope: Optional[str] = None) -> dict:
     """Run (or resume) a comparison; write ``out/results.json``, ``out/report.md`` and plots.
 
     ``only``: bring only the runs of these methods (``baseline``, a ``--vs`` value, or a name as
@@ -730,6 +763,10 @@ def run_compare(scene: str | Path, out: str | Path, vs: list[str] = (),
     bar.close()
     results["complete"] = not results["missing"]
     results["wall_s_this_invocation"] = time.perf_counter() - t0
+    if paired_fps and results["runs"]:
+        results["fps_pair"] = paired_fps_bench(results)
+    if scope:
+        results["scope"] = scope
     paths = write_report(results, out, plots=plots, panel_views=panel_views)
     results["report"] = {k: str(v) for k, v in paths.items()}
     write_json_atomic(out / "results.json", results)

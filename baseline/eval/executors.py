@@ -42,12 +42,16 @@ class Job:
     sets: tuple = ()
     lpips_weights: Optional[str] = None
     label: str = ""
+    reference: bool = False         # the comparison's uncompressed reference run (--reference)
 
 
 def job_spec(job: Job):
     """The job's RunSpec, planned exactly as ``pgs compare`` plans it (same folder, same hash)."""
-    from baseline.eval.compare import Method, plan_runs
+    from baseline.eval.compare import Method, plan_reference, plan_runs
 
+    if job.reference:
+        return plan_reference(job.out, Method(job.method, tuple(job.method_patches)),
+                              list(job.common_patches), list(job.sets))
     specs = plan_runs(job.out, [Method(job.method, tuple(job.method_patches))],
                       None if job.lmbda is None else [job.lmbda], list(job.common_patches),
                       list(job.sets), None if job.seed is None else [job.seed])
@@ -65,6 +69,13 @@ def run_job(job: Job, threads: int = 0) -> dict:
     reg.ensure_loaded()
     _maybe_fail_for_tests(job)
     spec = job_spec(job)
+    if job.reference:
+        from baseline.eval.compare import run_reference
+
+        row = run_reference(spec, job.scene, progress=False)
+        return {"label": job.label or f"reference {job.method}", "run_dir": str(spec.dir),
+                "psnr": row["psnr"], "bytes": None, "stages_run": row["stages_run"],
+                "pid": os.getpid()}
     lpips_fn, _ = load_lpips(job.lpips_weights)
     row = run_one(spec, job.scene, lpips_fn, lpips_id(job.lpips_weights) if lpips_fn else None,
                   progress=False)

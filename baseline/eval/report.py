@@ -750,6 +750,83 @@ def all_tables(results: dict) -> list[Table]:
             + [bd_table(results)])
 
 
+def _curve_points(results: dict, method: str) -> list[dict]:
+    """A method's points (lmbda, bytes, psnr): the seed means with seeds, else its runs."""
+    if seeds_of(results):
+        return seed_mean_points(results, method)
+    return [{"lmbda": r["lmbda"], "bytes": r["bytes"], "psnr": r["psnr"]}
+            for r in runs_of(results, method)]
+
+
+def verdict_lines(results: dict) -> list[str]:
+    """Which method wins, by how much, at what speed, each sign spelt out: per contender, the
+    BD-rate and BD-PSNR against the baseline (on the seed-mean curves when there are seeds), the
+    size and PSNR changes at each lambda, the paired FPS ratio when one was measured
+    (``results["fps_pair"]``) and the training-time ratio. ``results["scope"]`` (e.g. the
+    demo's "synthetic scene" caveat) closes it."""
+    base = results.get("baseline", "baseline")
+    bname = label(results, base)
+    seeds = seeds_of(results)
+    bd = {(b["method"], b["seed"]): b for b in (results.get("bd") or compute_bd(results))}
+    lines = []
+    for m in method_names(results):
+        if m == base or not runs_of(results, m):
+            continue
+        name = label(results, m)
+        b = bd.get((m, "mean" if seeds else None))
+        curve = f"on the seed-mean curves of {len(seeds)} seeds" if seeds else "one seed"
+        if b is not None and b["bd_rate"] is not None:
+            r = b["bd_rate"]
+            lines.append(f"{name} is {abs(r):.1f}% {'smaller' if r < 0 else 'larger'} than {bname} "
+                         f"at equal quality (BD-rate {r:+.2f}%, {curve})")
+        elif b is not None:
+            lines.append(f"{name} vs {bname}: no BD-rate ({b['note'] or 'curves do not overlap'})")
+        if b is not None and b["bd_psnr"] is not None:
+            d = b["bd_psnr"]
+            lines.append(f"{name} is {abs(d):.3f} dB {'better' if d > 0 else 'worse'} than {bname} "
+                         f"at equal size (BD-PSNR {d:+.3f} dB)")
+        if seeds:
+            per = [x for (mm, sd), x in bd.items() if mm == m and sd != "mean"
+                   and x["bd_rate"] is not None]
+            if len(per) > 1:
+                v = [x["bd_rate"] for x in per]
+                lines.append(f"  per seed: " + ", ".join(f"{x['bd_rate']:+.2f}% (seed {x['seed']})"
+                                                         for x in per)
+                             + f"; spread {max(v) - min(v):.2f} points")
+        eq = []
+        bpts = {p["lmbda"]: p for p in _curve_points(results, base)}
+        for pt in _curve_points(results, m):
+            q = bpts.get(pt["lmbda"])
+            if q is None:
+                continue
+            ds = 100.0 * (pt["bytes"] / q["bytes"] - 1.0)
+            dp = pt["psnr"] - q["psnr"]
+            size = ("the same size" if abs(ds) < 0.05 else
+                    f"{abs(ds):.1f}% {'smaller' if ds < 0 else 'larger'}")
+            qual = ("the same PSNR" if abs(dp) < 0.0005 else
+                    f"{abs(dp):.3f} dB {'higher' if dp > 0 else 'lower'} PSNR")
+            eq.append(f"lambda {pt['lmbda']:g}: {size}, {qual}")
+        if eq:
+            lines.append(f"at equal lambda (not equal rate pressure), {name} vs {bname}: "
+                         + "; ".join(eq))
+        fp = (results.get("fps_pair") or {}).get(m)
+        if fp:
+            ratio = fp["ratio"]
+            lines.append(f"{name} renders at {ratio:.2f}x {bname}'s FPS ({'faster' if ratio > 1 else 'slower'}; "
+                         f"decoded files timed in one process, {fp['rounds']} rounds, lambda "
+                         f"{fp['lmbda']:g}: {fp['fps']:.1f} vs {fp['fps_ref']:.1f} FPS, "
+                         f"{fp['threads']} thread(s))")
+        tm = [r["train_time_s"] for r in runs_of(results, m)]
+        tb = [r["train_time_s"] for r in runs_of(results, base)]
+        if tm and tb and len(tm) == len(tb):
+            ratio = sum(tm) / sum(tb)
+            lines.append(f"{name} trains in {ratio:.2f}x {bname}'s time "
+                         f"({sum(tm) / len(tm):.0f} s vs {sum(tb) / len(tb):.0f} s per run)")
+    if results.get("scope"):
+        lines.append(results["scope"])
+    return lines
+
+
 def _missing_text(results: dict) -> str:
     missing = results.get("missing") or []
     if not missing:
@@ -769,6 +846,10 @@ def format_report(results: dict, markdown: bool = False) -> str:
                  f"records ({len(results['runs'])} runs)."]
         if not results.get("complete", True):
             parts.append("\n**Incomplete comparison**: " + _missing_text(results))
+        verdict = verdict_lines(results)
+        if verdict:
+            parts += ["", "### Verdict", ""] + [f"- {v}" if not v.startswith("  ") else f"  - {v.strip()}"
+                                                for v in verdict]
         for t in tables:
             parts += ["", t.markdown()]
         parts += ["", "### Protocol", ""] + [f"- **{k}**: {v}" for k, v in prot]
@@ -803,6 +884,9 @@ def format_report(results: dict, markdown: bool = False) -> str:
         parts.insert(0, "Incomplete comparison: " + _missing_text(results))
     w = max(len(k) for k, _ in prot)
     parts.append("Protocol\n========\n" + "\n".join(f"{k.ljust(w)}  {v}" for k, v in prot))
+    verdict = verdict_lines(results)
+    if verdict:          # last, where a terminal leaves the reader
+        parts.append("Verdict\n=======\n" + "\n".join(verdict))
     return "\n\n".join(parts)
 
 
