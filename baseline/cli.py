@@ -301,7 +301,7 @@ def cmd_compare(args) -> int:
                               plots=not args.no_plots, only=args.only, remeasure=args.remeasure,
                               report_only=args.report_only, reference=args.reference,
                               codec=args.codec, seeds=args.seeds,
-                              panel_views=args.panel_views)
+                              panel_views=args.panel_views, paired_fps=args.paired_fps)
     except KeyboardInterrupt:
         print(f"\ninterrupted: finished stages are kept in {args.out}; run the same command "
               f"again to resume", file=sys.stderr)
@@ -515,6 +515,10 @@ def main(argv=None) -> int:
     p.add_argument("--lambda", dest="lambdas", type=float, nargs="+", action="extend",
                    default=None, metavar="L", help="rate points (entropy.lmbda); default: the "
                    "config's own; >= 3 give BD-rate / BD-PSNR")
+    p.add_argument("--paired-fps", action="store_true",
+                   help="time each contender's decoded file against the baseline's in one process "
+                        "(middle rate point, lowest seed, 3 rounds, 1 thread) for the verdict's "
+                        "FPS ratio; FPS of runs measured at different times make no ratio")
     p.add_argument("--panel-views", type=int, nargs="*", default=None, metavar="V",
                    help="test views (indices) drawn in the report's panels: ground truth, each "
                         "method's decoded render, error map and bit map (default: 0; none "
