@@ -64,7 +64,10 @@ def cmd_make_scene(args) -> int:
 def cmd_train(args) -> int:
     from baseline.run import train_run
 
+    from baseline.data.readers import detect_format
+
     cfg = _build_cfg(args)
+    detect_format(Path(args.scene))        # a wrong scene path leaves no output folder behind
     res = train_run(args.scene, args.out, cfg, resume=args.resume,
                     progress=not args.no_progress)
     _print_results(res)
@@ -230,7 +233,11 @@ def cmd_info(args) -> int:
     from baseline.codec.model_codec import file_info, format_info
 
     info = file_info(args.file)
-    print(f"{args.file}: {info['n_anchors']} anchors, {info['header']}")
+    h = info["header"]
+    print(f"{args.file}: {info['total_bytes']} bytes, {info['n_anchors']} anchors x "
+          f"{h.get('n_offsets', '?')} Gaussians; positions {h['position_coding']}, masks "
+          f"{h['mask_coding']}, grids {h['grid_coding']}, network weights "
+          f"{h.get('weight_dtype', 'float32')}")
     print(format_info(info))
     return 0
 
@@ -388,8 +395,38 @@ def cmd_demo(args) -> int:
     return 0
 
 
+def _version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        v = version("predict-gs-toolkit")
+    except PackageNotFoundError:     # run from a source tree without installing
+        v = "unknown (not installed)"
+    from baseline.config import TRAINING_SEMANTICS
+
+    return f"{v} (training semantics {TRAINING_SEMANTICS})"
+
+
+SCENE_HELP = ("scene folder: COLMAP (sparse/0 + images/ or images_N/) or Blender / instant-ngp "
+              "(transforms*.json)")
+LPIPS_HELP = ("LPIPS weights (.pth of the lpips package's VGG 'lin' layers with the VGG16 "
+              "features, or a full state dict; see the README); LPIPS is unavailable without")
+
+
+def _positive_int(text: str) -> int:
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+    if v < 1:
+        raise argparse.ArgumentTypeError(f"{v} must be at least 1")
+    return v
+
+
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="pgs", description="anchor-based 3DGS compression toolkit")
+    ap = argparse.ArgumentParser(prog="pgs", description="anchor-based 3DGS compression toolkit: "
+                                 "HAC, HAC++ and Predict-GS side by side")
+    ap.add_argument("--version", action="version", version=f"pgs {_version()}")
     sub = ap.add_subparsers(dest="cmd", required=True)
 
     p = sub.add_parser("config", help="print the merged config")
@@ -397,17 +434,17 @@ def main(argv=None) -> int:
     p.set_defaults(fn=cmd_config)
 
     p = sub.add_parser("make-scene", help="write the procedural synthetic scene (COLMAP format)")
-    p.add_argument("out")
-    p.add_argument("--views", type=int, default=40)
-    p.add_argument("--width", type=int, default=160)
-    p.add_argument("--height", type=int, default=120)
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("out", help="folder to write the scene to (COLMAP layout)")
+    p.add_argument("--views", type=_positive_int, default=40, help="camera views (every 8th is a test view)")
+    p.add_argument("--width", type=_positive_int, default=160, help="image width in pixels")
+    p.add_argument("--height", type=_positive_int, default=120, help="image height in pixels")
+    p.add_argument("--seed", type=int, default=0, help="scene seed (the same seed writes the same bytes)")
     p.add_argument("--detail", type=float, default=1.0, help="texture detail; 0 = flat colours")
     p.set_defaults(fn=cmd_make_scene)
 
     p = sub.add_parser("train", help="train a model on a scene")
-    p.add_argument("scene")
-    p.add_argument("--out", required=True)
+    p.add_argument("scene", help=SCENE_HELP)
+    p.add_argument("--out", required=True, help="run folder (config, checkpoint, results)")
     p.add_argument("--resume", action="store_true", help="continue from the run's checkpoint")
     p.add_argument("--no-progress", action="store_true",
                    help="no progress bars (follow OUT/train_log.jsonl instead)")
@@ -416,9 +453,9 @@ def main(argv=None) -> int:
 
     p = sub.add_parser("eval", help="evaluate a run folder or a .pgs file on the test views")
     p.add_argument("target", help="run folder or .pgs file")
-    p.add_argument("--split", choices=["test", "train"], default="test")
+    p.add_argument("--split", choices=["test", "train"], default="test", help="the views to use (default test)")
     p.add_argument("--scene", default=None, help="scene path (default: the one recorded)")
-    p.add_argument("--lpips-weights", default=None, help="LPIPS weights file (else unavailable)")
+    p.add_argument("--lpips-weights", default=None, help=LPIPS_HELP)
     p.add_argument("--device", default=None, help=DEVICE_HELP)
     p.set_defaults(fn=cmd_eval)
 
@@ -437,22 +474,22 @@ def main(argv=None) -> int:
     p = sub.add_parser("quant-cost", help="PSNR of a trained run with each coded attribute raw, "
                        "rounded (as coded) or noised (as HAC trains): where its quantization loss comes from")
     p.add_argument("run", help="run folder (trained into HAC's adaptive phase)")
-    p.add_argument("--split", choices=["test", "train"], default="test")
+    p.add_argument("--split", choices=["test", "train"], default="test", help="the views to use (default test)")
     p.add_argument("--seed", type=int, default=0, help="seed of the noise draws")
     p.add_argument("--device", default=None, help=DEVICE_HELP)
     p.set_defaults(fn=cmd_quant_cost)
 
     p = sub.add_parser("render", help="render the views of a run folder or a .pgs file to PNG")
-    p.add_argument("target")
-    p.add_argument("-o", "--output", required=True)
-    p.add_argument("--split", choices=["test", "train"], default="test")
-    p.add_argument("--scene", default=None)
+    p.add_argument("target", help="run folder or .pgs file")
+    p.add_argument("-o", "--output", required=True, help="folder for the PNG renders")
+    p.add_argument("--split", choices=["test", "train"], default="test", help="the views to use (default test)")
+    p.add_argument("--scene", default=None, help="scene path (default: the one recorded)")
     p.add_argument("--device", default=None, help=DEVICE_HELP)
     p.set_defaults(fn=cmd_render)
 
     p = sub.add_parser("encode", help="compress a trained run into one .pgs file")
-    p.add_argument("run")
-    p.add_argument("-o", "--output", required=True)
+    p.add_argument("run", help="run folder (trained)")
+    p.add_argument("-o", "--output", required=True, help="the .pgs file to write")
     p.add_argument("--weights", choices=["float32", "float16"], default=None,
                    help="network weight precision in the file (default: the run's codec.weight_dtype)")
     p.add_argument("--positions", choices=["raw16", "sorted"], default=None,
@@ -470,25 +507,25 @@ def main(argv=None) -> int:
 
     p = sub.add_parser("decode", help="decode a .pgs file: OUT/point_cloud.ply (3DGS PLY) and "
                        "OUT/results.json; with --render also renders + metrics")
-    p.add_argument("file")
-    p.add_argument("-o", "--output", default=None)
-    p.add_argument("--render", choices=["test", "train", "none"], default="none")
-    p.add_argument("--scene", default=None)
+    p.add_argument("file", help=".pgs file")
+    p.add_argument("-o", "--output", default=None, help="output folder (default: beside the file)")
+    p.add_argument("--render", choices=["test", "train", "none"], default="none", help="also render these views and measure them")
+    p.add_argument("--scene", default=None, help="scene path (default: the one the file records)")
     p.add_argument("--device", default=None, help=DEVICE_HELP + " (decoding itself: CPU)")
     p.set_defaults(fn=cmd_decode)
 
     p = sub.add_parser("info", help="per-section bit allocation of a .pgs file")
-    p.add_argument("file")
+    p.add_argument("file", help=".pgs file")
     p.set_defaults(fn=cmd_info)
 
     p = sub.add_parser("export-ply", help="write the decoded neural Gaussians as a 3DGS PLY")
-    p.add_argument("run")
-    p.add_argument("-o", "--output", default=None)
+    p.add_argument("run", help="run folder (trained)")
+    p.add_argument("-o", "--output", default=None, help="PLY file (default RUN/point_cloud.ply)")
     p.set_defaults(fn=cmd_export_ply)
 
     p = sub.add_parser("bench", help="benchmarks, printed as ratios to a reference in one process")
-    p.add_argument("what", choices=["raster", "codec", "grid", "fps", "frame", "train"])
-    p.add_argument("--threads", type=int, default=None)
+    p.add_argument("what", choices=["raster", "codec", "grid", "fps", "frame", "train"], help="what to time (see the README)")
+    p.add_argument("--threads", type=int, default=None, help="threads (default: the cores)")
     p.add_argument("--anchors", type=int, default=None,
                    help="payload size (default: codec 500k, grid 100k)")
     p.add_argument("--run", action="append", default=[],
@@ -509,7 +546,7 @@ def main(argv=None) -> int:
     p.set_defaults(fn=cmd_bench)
 
     p = sub.add_parser("compare", help="train/encode/decode methods side by side: tables, BD-rate, plots")
-    p.add_argument("scene")
+    p.add_argument("scene", help=SCENE_HELP)
     p.add_argument("--vs", action="append", default=[], metavar="P1[+P2...]",
                    help="a contender: patches joined by '+' on top of the common ones; repeat")
     p.add_argument("--lambda", dest="lambdas", type=float, nargs="+", action="extend",
@@ -529,7 +566,7 @@ def main(argv=None) -> int:
                         "seed-mean curves (two seeds or more for any rate-distortion claim)")
     p.add_argument("--out", default="runs/compare", help="comparison folder (runs/, report.md, "
                    "results.json, plots); rerun to resume")
-    p.add_argument("--lpips-weights", default=None, help="LPIPS weights file (else unavailable)")
+    p.add_argument("--lpips-weights", default=None, help=LPIPS_HELP)
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     p.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
     p.add_argument("--only", action="append", default=None, metavar="METHOD",
@@ -565,11 +602,11 @@ def main(argv=None) -> int:
     p.add_argument("--protocol", default=None,
                    choices=["mip360", "tandt", "deepblending", "nerf-synthetic"],
                    help="the dataset's HAC protocol patch")
-    p.add_argument("--vs", action="append", default=[], metavar="P1[+P2...]")
-    p.add_argument("--lambda", dest="lambdas", type=float, nargs="+", default=None, metavar="L")
-    p.add_argument("--seeds", type=int, nargs="+", default=None, metavar="S")
+    p.add_argument("--vs", action="append", default=[], metavar="P1[+P2...]", help="a contender: patches joined by '+'; repeat")
+    p.add_argument("--lambda", dest="lambdas", type=float, nargs="+", default=None, metavar="L", help="rate points (entropy.lmbda)")
+    p.add_argument("--seeds", type=int, nargs="+", default=None, metavar="S", help="train every rate point once per seed")
     p.add_argument("--out", required=True, help="benchmark folder (on Ray: a path every node sees)")
-    p.add_argument("--executor", default="local", choices=["local", "ray"])
+    p.add_argument("--executor", default="local", choices=["local", "ray"], help="where runs execute (default local)")
     p.add_argument("--jobs", type=int, default=1,
                    help="local: runs at a time, each in its own process with its share of the cores")
     p.add_argument("--address", default=None,
@@ -578,15 +615,15 @@ def main(argv=None) -> int:
     p.add_argument("--gpus-per-run", type=float, default=0,
                    help="ray: GPUs each run asks for (1 on a GPU cluster)")
     p.add_argument("--retries", type=int, default=2, help="attempts after a failure, per run")
-    p.add_argument("--lpips-weights", default=None)
-    p.add_argument("--no-progress", action="store_true")
-    p.add_argument("--no-plots", action="store_true")
+    p.add_argument("--lpips-weights", default=None, help=LPIPS_HELP)
+    p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    p.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
     _config_args(p)
     p.set_defaults(fn=cmd_benchmark)
 
     p = sub.add_parser("demo", help="the main job: HAC vs Predict-GS on the embedded scene, three "
                        "rate points trained in parallel, a verdict at the end")
-    p.add_argument("--out", default="runs/demo")
+    p.add_argument("--out", default="runs/demo", help="demo folder (default runs/demo)")
     p.add_argument("--patch", action="append", default=[], help="extra patches for every run")
     p.add_argument("--vs", action="append", default=[], help="contenders (default predict-gs)")
     p.add_argument("--lambda", dest="lambdas", type=float, nargs="+", default=None,

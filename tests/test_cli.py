@@ -208,3 +208,32 @@ def test_demo_end_to_end_ends_with_a_verdict(tmp_path, monkeypatch, scene_maker,
     assert "Verdict" in printed and "demo wall time" in printed
     res = json.loads((out / "results.json").read_text())
     assert len(res["runs"]) == 6 and set(res["fps_pair"]) == {"predict-gs"}
+
+
+def test_small_things_a_new_user_meets(tmp_path, capsys):
+    """--version; pgs info on a file that is not a .pgs names it; a wrong scene path leaves no
+    output folder; make-scene refuses sizes below 1 with a message, not a traceback."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    with pytest.raises(SystemExit) as e:
+        main(["--version"])
+    assert e.value.code == 0 and capsys.readouterr().out.startswith("pgs ")
+    txt = tmp_path / "notes.txt"
+    txt.write_text("hello")
+    assert main(["info", str(txt)]) == 2
+    err = capsys.readouterr().err
+    assert f"{txt}: wrong magic" in err and "<bytes>" not in err
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    assert main(["train", str(empty), "--out", str(tmp_path / "r"), "--patch", "demo"]) == 2
+    assert main(["compare", str(empty), "--out", str(tmp_path / "c"), "--patch", "demo"]) == 2
+    assert not (tmp_path / "r").exists() and not (tmp_path / "c").exists()
+    for bad in (["--width", "-5"], ["--views", "0"]):
+        with pytest.raises(SystemExit) as e:
+            main(["make-scene", str(tmp_path / "s"), *bad])
+        assert e.value.code == 2 and "must be at least 1" in capsys.readouterr().err
+    run_sh = Path(__file__).parent.parent / "run.sh"
+    p = subprocess.run(["bash", str(run_sh)], capture_output=True, text=True)
+    assert p.returncode == 2 and "usage: ./run.sh demo" in p.stderr

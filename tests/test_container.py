@@ -209,3 +209,31 @@ def test_hypothesis_round_trip(header, sections):
     data = build_container(header, sections)
     h, s = read_container(data)
     assert h == header and list(s.items()) == [(n, bytes(p)) for n, p in sections]
+
+
+def test_readers_refuse_devices_and_oversized_files_before_reading(tmp_path, monkeypatch):
+    """A device or an endless stream is never read (its size is checked first), nor a file over
+    PGS_MAX_FILE_MB; the env values are parsed with ranges (inf, 0, negatives refused)."""
+    from baseline.codec.container import BitstreamError, read_container, read_file_bytes
+    from baseline.codec.header import memory_budget
+
+    with pytest.raises(BitstreamError, match="/dev/zero: not a regular file"):
+        read_container("/dev/zero")
+    with pytest.raises(BitstreamError, match="is a directory"):
+        read_file_bytes(tmp_path)
+    f = tmp_path / "big.pgs"
+    f.write_bytes(b"\0" * (3 << 20))
+    monkeypatch.setenv("PGS_MAX_FILE_MB", "2")
+    with pytest.raises(BitstreamError, match="above the 2097152-byte cap"):
+        read_file_bytes(f)
+    monkeypatch.setenv("PGS_MAX_FILE_MB", "4")
+    assert len(read_file_bytes(f)) == 3 << 20
+    for bad in ("inf", "nan", "0", "-5", "x"):
+        monkeypatch.setenv("PGS_MAX_FILE_MB", bad)
+        with pytest.raises(ValueError, match="PGS_MAX_FILE_MB"):
+            read_file_bytes(f)
+        monkeypatch.setenv("PGS_DECODE_MEMORY_MB", bad)
+        with pytest.raises(ValueError, match="PGS_DECODE_MEMORY_MB"):
+            memory_budget(1000)
+    monkeypatch.setenv("PGS_DECODE_MEMORY_MB", "1.5")
+    assert memory_budget(1000) == int(1.5 * (1 << 20))

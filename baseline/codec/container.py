@@ -87,6 +87,56 @@ def write_container(path, header: dict, sections: Iterable[Tuple[str, bytes]]) -
     return write_bytes_atomic(path, build_container(header, sections))
 
 
+DEFAULT_MAX_FILE_MB = 4096
+
+
+def max_file_bytes() -> int:
+    """The largest ``.pgs`` file a reader accepts: ``PGS_MAX_FILE_MB`` (MiB, a finite number
+    above 0), else 4 GiB (truck files are 4-6 MB). Checked against the file's size before a
+    byte is read, so a device or an endless stream is never read into memory."""
+    env = os.environ.get("PGS_MAX_FILE_MB", "").strip()
+    if not env:
+        return DEFAULT_MAX_FILE_MB << 20
+    try:
+        mb = float(env)
+    except ValueError:
+        raise ValueError(f"PGS_MAX_FILE_MB={env!r} is not a number of MiB") from None
+    if not (mb > 0 and mb < float(1 << 40)):
+        raise ValueError(f"PGS_MAX_FILE_MB={env!r} must be a finite number of MiB above 0")
+    return int(mb * (1 << 20))
+
+
+def read_file_bytes(path: Union[str, os.PathLike], what: str = "a .pgs file") -> bytes:
+    """The bytes of a regular file no larger than :func:`max_file_bytes`; a missing file, a
+    folder, a device / pipe / socket or a file over the cap is a :class:`BitstreamError` naming
+    it, raised before anything is read."""
+    where = str(path)
+    try:
+        st = os.stat(path)
+    except FileNotFoundError:
+        raise BitstreamError(f"{where}: no such file") from None
+    except OSError as e:
+        raise BitstreamError(f"{where}: cannot read it ({e.strerror or e})") from None
+    import stat as _stat
+
+    if _stat.S_ISDIR(st.st_mode):
+        raise BitstreamError(f"{where}: is a directory, not {what}")
+    if not _stat.S_ISREG(st.st_mode):
+        raise BitstreamError(f"{where}: not a regular file (a device, pipe or socket), not {what}")
+    cap = max_file_bytes()
+    if st.st_size > cap:
+        raise BitstreamError(f"{where}: {st.st_size} bytes, above the {cap}-byte cap for {what} "
+                             f"(PGS_MAX_FILE_MB raises it)")
+    try:
+        with open(path, "rb") as f:
+            data = f.read(cap + 1)
+    except OSError as e:
+        raise BitstreamError(f"{where}: cannot read it ({e.strerror or e})") from None
+    if len(data) > cap:                  # grew while being read
+        raise BitstreamError(f"{where}: more than the {cap}-byte cap for {what}")
+    return data
+
+
 def read_container(src: Union[str, os.PathLike, bytes, bytearray, memoryview]):
     """Parse a container from a path or bytes -> ``(header dict, OrderedDict name -> bytes)``.
 
@@ -97,13 +147,7 @@ def read_container(src: Union[str, os.PathLike, bytes, bytearray, memoryview]):
         where = "<bytes>"
     else:
         where = str(src)
-        try:
-            with open(src, "rb") as f:
-                data = f.read()
-        except FileNotFoundError:
-            raise BitstreamError(f"{where}: no such file") from None
-        except IsADirectoryError:
-            raise BitstreamError(f"{where}: is a directory, not a .pgs file") from None
+        data = read_file_bytes(src)
     return _parse(data, where)
 
 
@@ -193,7 +237,8 @@ def _parse(data: bytes, where: str):
 
 def container_summary(src) -> list:
     """``[(name, payload bytes)]`` including the framing as ``(_framing, bytes)``; for reports."""
-    data = src if isinstance(src, (bytes, bytearray)) else Path(src).read_bytes()
-    header, sections = _parse(bytes(data), "<summary>")
+    data = src if isinstance(src, (bytes, bytearray)) else read_file_bytes(src)
+    header, sections = _parse(bytes(data), "<summary>" if isinstance(src, (bytes, bytearray))
+                              else str(src))
     payload = sum(len(p) for p in sections.values())
     return [(n, len(p)) for n, p in sections.items()] + [("_framing", len(data) - payload)]

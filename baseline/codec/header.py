@@ -82,9 +82,13 @@ def memory_budget(file_size: int, override: Optional[int] = None) -> int:
     env = os.environ.get("PGS_DECODE_MEMORY_MB", "").strip()
     if env:
         try:
-            return int(float(env) * (1 << 20))
+            mb = float(env)
         except ValueError:
             raise ValueError(f"PGS_DECODE_MEMORY_MB={env!r} is not a number of MiB") from None
+        if not (mb > 0 and mb < float(1 << 40)):        # inf, nan, 0 and negatives refused
+            raise ValueError(f"PGS_DECODE_MEMORY_MB={env!r} must be a finite number of MiB "
+                             f"above 0")
+        return int(mb * (1 << 20))
     return 128 * int(file_size) + (256 << 20)
 
 

@@ -35,7 +35,7 @@ import numpy as np
 import torch
 import torch.nn as nn
 
-from baseline.codec.container import BitstreamError, read_container, write_container
+from baseline.codec.container import BitstreamError, read_container, read_file_bytes, write_container
 from baseline.codec.header import check_header, digest_sections
 from baseline.codec.masks import decode_mask_patterns, encode_mask_patterns, mask_pattern_counts
 from baseline.codec.positions import decode_positions, encode_positions
@@ -419,13 +419,12 @@ def section_label(name: str, header: dict) -> str:
 def file_info(path: str | Path) -> dict:
     """Per-section and per-group allocation read from the file itself (its header checked as
     the decoder checks it)."""
+    raw = read_file_bytes(path)
     try:
-        raw = Path(path).read_bytes()
-    except FileNotFoundError:
-        raise BitstreamError(f"{path}: no such file") from None
-    except IsADirectoryError:
-        raise BitstreamError(f"{path}: is a directory, not a .pgs file") from None
-    header, sections = read_container(raw)
+        header, sections = read_container(raw)
+    except BitstreamError as e:
+        msg = str(e).replace("<bytes>", str(path), 1)
+        raise BitstreamError(msg if msg.startswith(str(path)) else f"{path}: {msg}") from None
     try:
         check_header(header, sections, len(raw), max_bytes=1 << 62)   # reads, allocates nothing
     except BitstreamError as e:

@@ -681,6 +681,12 @@ def run_compare(scene: str | Path, out: str | Path, vs: list[str] = (),
         methods = [m for m in methods if m.name in only]
     lpips_fn, lpips_reason = load_lpips(lpips_weights)
     lp_id = lpips_id(lpips_weights) if lpips_fn is not None else None
+    from baseline.device import resolve_device
+
+    if not report_only:                 # a wrong scene path leaves no output folder behind
+        from baseline.data.readers import detect_format
+
+        detect_format(Path(scene_path))
     out.mkdir(parents=True, exist_ok=True)
 
     results = {
@@ -709,8 +715,18 @@ def run_compare(scene: str | Path, out: str | Path, vs: list[str] = (),
         per = len(specs) // len(methods)
         what = (f"{per // len(seeds)} rate point(s) x {len(seeds)} seed(s)" if seeds
                 else f"{per} rate point(s)")
+        ref_txt = (f" + the uncompressed reference ({ref_method.name})"
+                   if ref_spec is not None and (not only or REFERENCE in only) else "")
         print(f"compare: {len(methods)} method(s) x {what} = "
-              f"{len(specs)} run(s) on {scene_path}; {n_done} already finished in {out / 'runs'}")
+              f"{len(specs)} run(s){ref_txt} on {scene_path}; {n_done} already finished in "
+              f"{out / 'runs'}")
+        slow = sorted({s.cfg.train.iterations for s in specs
+                       if s.cfg.train.iterations >= s.cfg.train.schedule_base
+                       and str(resolve_device(s.cfg.train.device)) == "cpu"})
+        if slow and not report_only:
+            print(f"note: {slow[-1]} iterations per run on the CPU (the paper's schedule; hours "
+                  f"per run on real scenes): --patch cpu runs the 6k-iteration CPU preset, "
+                  f"--patch demo the 1k one")
     elif echo:
         print(f"compare: the uncompressed reference only, on {scene_path}")
     if report_only:
