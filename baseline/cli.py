@@ -182,7 +182,7 @@ def cmd_encode(args) -> int:
 def cmd_decode(args) -> int:
     from baseline.codec.model_codec import decode_model
     from baseline.contracts import feature_cache
-    from baseline.eval.export import export_run_ply
+    from baseline.eval.export import export_run_ply, export_sh_ply
     from baseline.run import Renderable, write_json_atomic
 
     import shutil
@@ -217,10 +217,20 @@ def cmd_decode(args) -> int:
         model = r.model if r is not None else dec.model
         model.to("cpu")
         ply = out / "point_cloud.ply"
-        n = export_run_ply(model, r.scene.train_cameras if r is not None else None, ply,
-                           center=None if center is None else torch.tensor(center))
-        res["ply"] = {"path": str(ply), "gaussians": n}
-        print(f"wrote {n} Gaussians to {ply}")
+        scene = r.scene if r is not None else _scene_of(dec, args.scene)
+        if scene is not None and scene.train_cameras:
+            model.unbake()
+            res["ply"] = export_sh_ply(model, scene, ply, sh_degree=args.sh_degree,
+                                       source=str(args.file))
+            _print_ply(res["ply"])
+        else:
+            n = export_run_ply(model, None, ply,
+                               center=None if center is None else torch.tensor(center))
+            res["ply"] = {"path": str(ply), "gaussians": n, "sh_degree": 0,
+                          "note": "scene not here: one viewpoint's Gaussians, degree-0 colours"}
+            print(f"wrote {n} Gaussians to {ply}: the scene {dec.scene_path} is not here, so "
+                  f"these are the Gaussians seen from the mean training camera with degree-0 "
+                  f"colours (pass --scene PATH for the view-union export with SH colours)")
         write_json_atomic(out / "results.json", res)
     except BaseException:
         if created:                          # a failed decode leaves nothing behind
@@ -242,15 +252,38 @@ def cmd_info(args) -> int:
     return 0
 
 
+def _scene_of(dec, scene_override):
+    """The scene of a decoded file when it is here (for the view-union PLY), else None."""
+    from baseline.run import load_scene_for
+
+    path = scene_override or dec.scene_path
+    if not path or not Path(path).exists():
+        return None
+    return load_scene_for(dec.cfg, path, progress=False)
+
+
+def _print_ply(r: dict) -> None:
+    print(f"wrote {r['gaussians']} Gaussians to {r['path']} (the union over the training views "
+          f"of those drawn, {r['drawn_per_view']:.0f} per view; SH degree {r['sh_degree']}); "
+          f"fidelity on {r['views']} test views: {r['psnr_vs_model']:.2f} dB against the model's "
+          f"render, {r['psnr_ply']:.2f} dB against the ground truth (model {r['psnr_model']:.2f})")
+
+
 def cmd_export_ply(args) -> int:
-    from baseline.eval.export import export_run_ply
+    from baseline.eval.export import export_run_ply, export_sh_ply
     from baseline.run import coded_state, load_run
 
     trainer, scene = load_run(args.run, device="cpu")
     out = args.output or str(Path(args.run) / "point_cloud.ply")
     # in the adaptive phase: what the codec would store (quantized values, 16-bit positions)
-    n = export_run_ply(trainer.model, scene.train_cameras, out, coded=coded_state(trainer))
-    print(f"wrote {n} Gaussians to {out}")
+    coded = coded_state(trainer)
+    if coded is None:
+        n = export_run_ply(trainer.model, scene.train_cameras, out)
+        print(f"wrote {n} Gaussians to {out} (a run before HAC's coding: one viewpoint's "
+              f"Gaussians, degree-0 colours)")
+        return 0
+    _print_ply(export_sh_ply(trainer.model, scene, out, coded=coded, sh_degree=args.sh_degree,
+                             backend=trainer.cfg.train.rasterizer, source=str(args.run)))
     return 0
 
 
@@ -511,6 +544,8 @@ def main(argv=None) -> int:
     p.add_argument("-o", "--output", default=None, help="output folder (default: beside the file)")
     p.add_argument("--render", choices=["test", "train", "none"], default="none", help="also render these views and measure them")
     p.add_argument("--scene", default=None, help="scene path (default: the one the file records)")
+    p.add_argument("--sh-degree", type=int, choices=[0, 1, 2, 3], default=3,
+                   help="degree of the PLY's fitted spherical-harmonic colours (default 3)")
     p.add_argument("--device", default=None, help=DEVICE_HELP + " (decoding itself: CPU)")
     p.set_defaults(fn=cmd_decode)
 
@@ -521,6 +556,8 @@ def main(argv=None) -> int:
     p = sub.add_parser("export-ply", help="write the decoded neural Gaussians as a 3DGS PLY")
     p.add_argument("run", help="run folder (trained)")
     p.add_argument("-o", "--output", default=None, help="PLY file (default RUN/point_cloud.ply)")
+    p.add_argument("--sh-degree", type=int, choices=[0, 1, 2, 3], default=3,
+                   help="degree of the fitted spherical-harmonic colours (default 3)")
     p.set_defaults(fn=cmd_export_ply)
 
     p = sub.add_parser("bench", help="benchmarks, printed as ratios to a reference in one process")
