@@ -20,9 +20,16 @@ def test_panel_images_and_bit_map_totals(decoded_files, tmp_path):
     gt = read_image(rec["images"]["gt"])
     assert gt.shape[:2] == (cam.height, cam.width)
     for label, path in files:
-        for kind in ("render", "error", "bits"):
+        img = read_image(rec["images"][label]["render"])
+        assert img.shape[:2] == (cam.height, cam.width), label
+        for kind in ("error", "bits"):        # with a colour bar: wider than the view
             img = read_image(rec["images"][label][kind])
-            assert img.shape[:2] == (cam.height, cam.width), (label, kind)
+            assert img.shape[1] > cam.width and img.shape[0] >= cam.height, (label, kind)
+        # the file's bits: per-anchor (what the map shows) + shared (no pixel owns them)
+        split = rec["file_bits"][label]
+        assert split["file"] == 8 * path.stat().st_size
+        assert split["per_anchor"] + split["shared"] == pytest.approx(split["file"])
+        assert 0 < split["shared"] < split["file"]
         dec = decode_model(path)
         bits = coded_bits_per_anchor(dec)
         bmap, shown = bit_map(dec, cam, bits)

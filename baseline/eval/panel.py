@@ -7,11 +7,15 @@ For a test view and a rate point, from each method's decoded ``.pgs`` file:
 * its bit map: each anchor's coded bits (:func:`baseline.codec.model_codec.coded_bits_per_anchor`:
   its coded attributes' information content under the file's own probabilities) added at the
   pixel its centre projects to, for the anchors that pass the prefilter of this view and land
-  in the image (one colour scale, in bits per pixel). The map's total is those anchors' bits.
+  in the image (one colour scale, in bits per pixel). The map's total is those anchors' bits:
+  per-anchor bits only. The sections no pixel owns (positions, masks, hash grids, networks,
+  header: "shared") are given beside it with the file's total (:func:`file_bit_split`), since
+  two methods can split a file very differently between the two.
 
 Written per view and rate point: the single images at the view's size (``gt.png``,
 ``<method>-render.png``, ``<method>-error.png``, ``<method>-bits.png``, and the arrays as
-``.npy``) and one matplotlib panel with colour bars (``panel.png``) that the report embeds.
+``.npy``; the error and bit maps each with its colour bar and unit) and one matplotlib panel
+with colour bars (``panel.png``) that the report embeds.
 """
 from __future__ import annotations
 
@@ -61,13 +65,6 @@ def _png(path: Path, img: np.ndarray) -> None:
     write_png_atomic(path, img)
 
 
-def _colour(values: np.ndarray, vmax: float, cmap: str) -> np.ndarray:
-    import matplotlib
-
-    norm = np.clip(values / vmax, 0, 1) if vmax > 0 else np.zeros_like(values)
-    return (matplotlib.colormaps[cmap](norm)[..., :3] * 255 + 0.5).astype(np.uint8)
-
-
 @torch.no_grad()
 def view_panel(entries: list[tuple[str, Path]], scene, view: int, out_dir: Path,
                title: str = "") -> dict:
@@ -90,25 +87,59 @@ def view_panel(entries: list[tuple[str, Path]], scene, view: int, out_dir: Path,
         dec.model.to("cpu")
         img = to_uint8(render_view(dec.model, cam, bg, phase="decoded", backend="cpu").render.image)
         err = np.abs(img.astype(np.float64) - gt.astype(np.float64)).mean(axis=2)
-        bmap, shown = bit_map(dec, cam, coded_bits_per_anchor(dec))
+        per_anchor = coded_bits_per_anchor(dec)
+        bmap, shown = bit_map(dec, cam, per_anchor)
         safe = "".join(c if c.isalnum() or c in "+-_." else "_" for c in label)
         _png(out_dir / f"{safe}-render.png", img)
         np.save(out_dir / f"{safe}-error.npy", err)
         np.save(out_dir / f"{safe}-bits.npy", bmap)
         images[label] = {k: str(out_dir / f"{safe}-{k}.png") for k in ("render", "error", "bits")}
-        rows.append((label, img, err, bmap, int(shown.sum())))
+        rows.append((label, img, err, bmap, int(shown.sum()),
+                     file_bit_split(path, per_anchor)))
     evmax = max((float(np.percentile(r[2], 99.5)) for r in rows), default=1.0) or 1.0
     bvmax = max((float(np.percentile(r[3][r[3] > 0], 99)) if (r[3] > 0).any() else 0.0
                  for r in rows), default=1.0) or 1.0
-    for label, img, err, bmap, _ in rows:
-        _png(Path(images[label]["error"]), _colour(err, evmax, "inferno"))
-        _png(Path(images[label]["bits"]), _colour(bmap, bvmax, "viridis"))
+    for label, img, err, bmap, _, _ in rows:
+        _scaled_png(Path(images[label]["error"]), err, evmax, "inferno",
+                    "|render - GT| (grey levels)")
+        _scaled_png(Path(images[label]["bits"]), bmap, bvmax, "viridis",
+                    "per-anchor coded bits per pixel")
     panel = out_dir / "panel.png"
     _draw(panel, gt, rows, evmax, bvmax, title or f"view {view} ({cam.name})")
     return {"panel": str(panel), "images": images, "view": view, "camera": cam.name,
             "bits_shown": {r[0]: float(r[3].sum()) for r in rows},
             "anchors_shown": {r[0]: r[4] for r in rows},
+            "file_bits": {r[0]: r[5] for r in rows},
             "error_vmax": evmax, "bits_vmax": bvmax}
+
+
+def file_bit_split(path: Path, per_anchor_bits: torch.Tensor) -> dict:
+    """What a bit map shows of its file: ``per_anchor`` (the coded attributes' bits of every
+    anchor, the map's currency), ``shared`` (everything else: positions, masks, hash grids,
+    networks, header; no pixel to put them on) and ``file`` (bytes x 8)."""
+    total = 8 * Path(path).stat().st_size
+    per = float(per_anchor_bits.sum())
+    return {"file": total, "per_anchor": per, "shared": total - per}
+
+
+def _scaled_png(path: Path, values: np.ndarray, vmax: float, cmap: str, label: str) -> None:
+    """A single map as a PNG at about its own size, with its colour bar and unit (the arrays
+    themselves are beside it as ``.npy``)."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    h, w = values.shape
+    dpi = 100
+    fig = Figure(figsize=(max(w, 160) / dpi + 1.3, max(h, 120) / dpi + 0.3), dpi=dpi,
+                 layout="constrained")
+    FigureCanvasAgg(fig)
+    ax = fig.subplots()
+    ax.set_xticks([])
+    ax.set_yticks([])
+    im = ax.imshow(values, cmap=cmap, vmin=0, vmax=vmax, interpolation="nearest")
+    fig.colorbar(im, ax=ax, shrink=0.9, label=label)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png")
 
 
 def _draw(path: Path, gt, rows, evmax: float, bvmax: float, title: str) -> None:
@@ -130,19 +161,23 @@ def _draw(path: Path, gt, rows, evmax: float, bvmax: float, title: str) -> None:
     axes[1][0].axis("off")
     axes[2][0].axis("off")
     im_e = im_b = None
-    for j, (label, img, err, bmap, shown) in enumerate(rows, start=1):
+    for j, (label, img, err, bmap, shown, split) in enumerate(rows, start=1):
         axes[0][j].imshow(img)
         axes[0][j].set_title(label, fontsize=9)
         im_e = axes[1][j].imshow(err, cmap="inferno", vmin=0, vmax=evmax)
         axes[1][j].set_title(f"|error| mean {err.mean():.2f}", fontsize=8)
         im_b = axes[2][j].imshow(bmap, cmap="viridis", vmin=0, vmax=bvmax,
                                  interpolation="nearest")
-        axes[2][j].set_title(f"{bmap.sum() / 8 / 1024:.1f} KiB in {shown} anchors", fontsize=8)
+        kib = 8 * 1024
+        axes[2][j].set_title(f"here: {bmap.sum() / kib:.1f} KiB of per-anchor bits, {shown} anchors\n"
+                             f"file {split['file'] / kib:.0f} KiB = per-anchor "
+                             f"{split['per_anchor'] / kib:.0f} + shared {split['shared'] / kib:.0f} "
+                             f"({100 * split['shared'] / split['file']:.0f}%)", fontsize=7)
     if im_e is not None:
         fig.colorbar(im_e, ax=list(axes[1][1:]), shrink=0.9,
                      label="|render - GT| (grey levels)")
         fig.colorbar(im_b, ax=list(axes[2][1:]), shrink=0.9,
-                     label="coded bits per pixel")
+                     label="per-anchor coded bits per pixel")
     fig.suptitle(title, fontsize=10)
     with atomic_path(path) as tmp:
         fig.savefig(tmp, format="png")

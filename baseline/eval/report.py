@@ -863,8 +863,11 @@ def format_report(results: dict, markdown: bool = False) -> str:
                       "render, its per-pixel error against the ground truth (mean over RGB, "
                       "grey levels; one colour scale per panel) and its bit map (each anchor's "
                       "coded bits, under the file's own probabilities, at the pixel its centre "
-                      "projects to; one colour scale per panel). Single images and arrays "
-                      "beside each panel in `panels/`."]
+                      "projects to; one colour scale per panel). The bit map holds per-anchor "
+                      "bits only: under it, the file's total split into per-anchor bits and the "
+                      "shared sections no pixel owns (positions, masks, grids, networks, header), "
+                      "which methods split very differently. Single images (with their colour "
+                      "bars) and arrays beside each panel in `panels/`."]
             for p in panels:
                 rel = Path(p["panel"]).relative_to(Path(p["panel"]).parents[2])
                 parts += ["", f"![lambda {p['lmbda']:g}, view {p['view']}]({rel.as_posix()})"]
