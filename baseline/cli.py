@@ -89,7 +89,7 @@ def cmd_eval(args) -> int:
     from baseline.run import Renderable, write_json_atomic
 
     r = Renderable(args.target, args.scene, device=args.device)
-    lpips_fn, reason = load_lpips(args.lpips_weights)
+    lpips_fn, reason = load_lpips(_lpips_weights(args))
     if lpips_fn is None:
         print(reason)
     target = Path(args.target)
@@ -337,7 +337,7 @@ def cmd_compare(args) -> int:
     try:
         results = run_compare(args.scene, args.out, vs=args.vs, lambdas=args.lambdas,
                               common_patches=args.patch, sets=sets,
-                              lpips_weights=args.lpips_weights, progress=not args.no_progress,
+                              lpips_weights=_lpips_weights(args), progress=not args.no_progress,
                               plots=not args.no_plots, only=args.only, remeasure=args.remeasure,
                               report_only=args.report_only, reference=args.reference,
                               codec=args.codec, seeds=args.seeds,
@@ -369,7 +369,7 @@ def cmd_benchmark(args) -> int:
     res = run_benchmark(args.root, args.out, vs=args.vs, lambdas=args.lambdas, seeds=args.seeds,
                         scenes=scenes, protocol=args.protocol, common_patches=args.patch,
                         sets=sets, executor=args.executor, executor_options=opts,
-                        lpips_weights=args.lpips_weights, plots=not args.no_plots,
+                        lpips_weights=_lpips_weights(args), plots=not args.no_plots,
                         progress=not args.no_progress)
     return 0 if not res["failed"] else 1
 
@@ -442,8 +442,17 @@ def _version() -> str:
 
 SCENE_HELP = ("scene folder: COLMAP (sparse/0 + images/ or images_N/) or Blender / instant-ngp "
               "(transforms*.json)")
-LPIPS_HELP = ("LPIPS weights (.pth of the lpips package's VGG 'lin' layers with the VGG16 "
-              "features, or a full state dict; see the README); LPIPS is unavailable without")
+LPIPS_HELP = ("LPIPS (VGG) weights: LIN.pth,VGG16.pth - the lpips package's weights/v0.1/vgg.pth "
+              "and torchvision's vgg16-397923af.pth - or one file holding both (README); found "
+              "on their own when both are installed, never downloaded; else LPIPS is unavailable")
+
+
+def _lpips_weights(args):
+    """``--lpips-weights``, else the lpips package's and torchvision's files when both are on
+    this machine already (:func:`baseline.eval.metrics.find_lpips_weights`; never downloaded)."""
+    from baseline.eval.metrics import find_lpips_weights
+
+    return args.lpips_weights or find_lpips_weights()
 
 
 def _positive_int(text: str) -> int:

@@ -134,3 +134,47 @@ def test_load_lpips(tmp_path):
     torch.save(tv, tmp_path / "bad.pth")
     with pytest.raises(ValueError, match="lins.4.weight"):
         load_lpips(tmp_path / "bad.pth")
+
+
+def test_lpips_from_the_two_files_the_field_ships(tmp_path, monkeypatch):
+    """The lpips package keeps only its linear layers (weights/v0.1/vgg.pth, keys
+    lin{k}.model.1.weight) and torchvision the VGG16 backbone (vgg16-397923af.pth, features.* and
+    classifier.*): given as LIN,VGG they are merged; both found on the machine (a package
+    folder and the torch hub cache) they are used without being passed; nothing downloads."""
+    import types
+
+    import baseline.eval.metrics as metrics
+    from baseline.cli import _lpips_weights
+    from baseline.eval.compare import lpips_id
+
+    net = _random_lpips(5)
+    sd = net.state_dict()
+    lin = {f"lin{k}.model.1.weight": sd[f"lins.{k}.weight"] for k in range(5)}
+    vgg = {k: v for k, v in sd.items() if k.startswith("features.")}
+    vgg["classifier.0.weight"] = torch.zeros(4, 4)          # torchvision's head: ignored
+    pkg = tmp_path / "site" / "lpips"
+    (pkg / "weights" / "v0.1").mkdir(parents=True)
+    (pkg / "__init__.py").write_text("raise ImportError('needs torchvision')\n")
+    torch.save(lin, pkg / "weights" / "v0.1" / "vgg.pth")
+    hub = tmp_path / "hub"
+    (hub / "checkpoints").mkdir(parents=True)
+    torch.save(vgg, hub / "checkpoints" / "vgg16-397923af.pth")
+    rng = np.random.default_rng(4)
+    x = rng.uniform(size=(24, 24, 3)).astype(np.float32)
+    y = rng.uniform(size=(24, 24, 3)).astype(np.float32)
+    ref = float(net(x, y))
+    pair = f"{pkg / 'weights/v0.1/vgg.pth'},{hub / 'checkpoints/vgg16-397923af.pth'}"
+    m, reason = load_lpips(pair)
+    assert reason is None and float(m(x, y)) == pytest.approx(ref, rel=1e-6)
+    assert lpips_id(pair).count("bytes)") == 2
+    with pytest.raises(ValueError, match="lack"):              # one half alone is not enough
+        load_lpips(pkg / "weights/v0.1/vgg.pth")
+    # found on the machine without being passed (the package is never imported)
+    assert metrics.find_lpips_weights() is None or "vgg.pth" in metrics.find_lpips_weights()
+    monkeypatch.syspath_prepend(str(tmp_path / "site"))
+    monkeypatch.setattr(torch.hub, "get_dir", lambda: str(hub))
+    import importlib
+    importlib.invalidate_caches()
+    assert metrics.find_lpips_weights() == pair
+    assert _lpips_weights(types.SimpleNamespace(lpips_weights=None)) == pair
+    assert _lpips_weights(types.SimpleNamespace(lpips_weights="mine.pth")) == "mine.pth"

@@ -312,8 +312,12 @@ def lpips_id(weights: Optional[str]) -> Optional[str]:
     """Which LPIPS weights a measurement used: resolved path and byte count (None: no LPIPS)."""
     if weights is None:
         return None
-    p = Path(weights).expanduser().resolve()
-    return f"{p} ({p.stat().st_size} bytes)" if p.is_file() else None
+    from baseline.eval.metrics import lpips_paths
+
+    ps = [p.resolve() for p in lpips_paths(weights)]
+    if not ps or not all(p.is_file() for p in ps):
+        return None
+    return ", ".join(f"{p} ({p.stat().st_size} bytes)" for p in ps)
 
 
 def _evaluated(record: dict, lpips: Optional[str]) -> bool:

@@ -20,12 +20,14 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
+from typing import Optional
 
 import numpy as np
 import torch
 from skimage.metrics import structural_similarity
 
-LPIPS_UNAVAILABLE = "LPIPS unavailable: pass --lpips-weights PATH"
+LPIPS_UNAVAILABLE = ("LPIPS unavailable: pass --lpips-weights LIN.pth,VGG16.pth (the lpips "
+                     "package's weights/v0.1/vgg.pth and torchvision's vgg16-397923af.pth; README)")
 
 SSIM_SETTINGS = dict(gaussian_weights=True, sigma=1.5, use_sample_covariance=False,
                      data_range=255, channel_axis=-1)
@@ -176,19 +178,52 @@ class LPIPS(torch.nn.Module):
         return d[0] if single else d
 
 
+LPIPS_LIN_FILE = "weights/v0.1/vgg.pth"              # inside the lpips package
+VGG16_FILE = "vgg16-397923af.pth"                   # torchvision's ImageNet VGG16 weights
+
+
+def find_lpips_weights() -> Optional[str]:
+    """``"LIN,VGG"`` when both halves of the field's LPIPS (VGG) are on this machine already: the
+    lpips package's linear layers (``lpips/weights/v0.1/vgg.pth``, found without importing the
+    package, which needs torchvision) and torchvision's VGG16 file in the torch hub cache
+    (``$TORCH_HOME/hub/checkpoints/vgg16-397923af.pth``). Nothing is ever downloaded."""
+    import importlib.util
+
+    try:
+        spec = importlib.util.find_spec("lpips")
+    except (ImportError, ValueError):
+        spec = None
+    if spec is None or not spec.origin:
+        return None
+    lin = Path(spec.origin).parent / LPIPS_LIN_FILE
+    vgg = Path(torch.hub.get_dir()) / "checkpoints" / VGG16_FILE
+    return f"{lin},{vgg}" if lin.is_file() and vgg.is_file() else None
+
+
+def lpips_paths(weights: str | Path) -> list[Path]:
+    """The files of a ``--lpips-weights`` value: one path, or several joined by commas."""
+    return [Path(w.strip()).expanduser() for w in str(weights).split(",") if w.strip()]
+
+
 def load_lpips(weights: str | Path | None, device: str | torch.device = "cpu"
                ) -> tuple[LPIPS | None, str | None]:
-    """(model, None) when ``weights`` names an existing file, else (None, reason).
+    """(model, None) when ``weights`` names existing files, else (None, reason).
 
-    A file that exists but lacks the expected tensors raises ``ValueError``: a user who passed
-    weights gets an error, not a silently missing metric.
+    ``weights``: one ``.pth`` with both parts, or several joined by commas whose state dicts
+    are merged, e.g. the lpips package's ``vgg.pth`` (linear layers) and torchvision's
+    ``vgg16-397923af.pth`` (backbone). A file that exists but lacks the expected tensors raises
+    ``ValueError``: a user who passed weights gets an error, not a silently missing metric.
     """
     if weights is None:
         return None, LPIPS_UNAVAILABLE
-    p = Path(weights).expanduser()
-    if not p.is_file():
-        return None, f"{LPIPS_UNAVAILABLE} (no file at {p})"
-    state = torch.load(p, map_location="cpu", weights_only=True)
-    if isinstance(state, dict) and "state_dict" in state and isinstance(state["state_dict"], dict):
-        state = state["state_dict"]
+    state: dict = {}
+    for p in lpips_paths(weights):
+        if not p.is_file():
+            return None, f"{LPIPS_UNAVAILABLE} (no file at {p})"
+        part = torch.load(p, map_location="cpu", weights_only=True)
+        if isinstance(part, dict) and "state_dict" in part and isinstance(part["state_dict"], dict):
+            part = part["state_dict"]
+        if not isinstance(part, dict):
+            raise ValueError(f"LPIPS weights {p}: not a state dict")
+        state.update(part)
     return LPIPS().load_weights(state).to(device), None

@@ -272,7 +272,9 @@ def _lpips_note(results: dict) -> str:
     runs = results["runs"]
     ids = sorted({str(r.get("lpips_weights")) for r in runs if r["lpips"] is not None})
     if not ids:
-        return str(results.get("lpips") or "LPIPS unavailable: pass --lpips-weights PATH")
+        from baseline.eval.metrics import LPIPS_UNAVAILABLE
+
+        return str(results.get("lpips") or LPIPS_UNAVAILABLE)
     note = "LPIPS: VGG16 LPIPS with weights " + "; ".join(ids)
     if any(r["lpips"] is None for r in runs):
         note += " ('unavailable' rows: pass --lpips-weights PATH)"
