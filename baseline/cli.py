@@ -65,9 +65,19 @@ def cmd_train(args) -> int:
     from baseline.run import train_run
 
     from baseline.data.readers import detect_format
+    from baseline.guard import RUN_FILES, RunLock, check_output_folder
 
     cfg = _build_cfg(args)
     detect_format(Path(args.scene))        # a wrong scene path leaves no output folder behind
+    out = Path(args.out)
+    check_output_folder(out, may_be_run=args.resume, overwrite=args.overwrite)
+    if args.resume and not (out / "checkpoint.pt").is_file():
+        raise ValueError(f"--resume: {out} holds no run to resume (no checkpoint.pt); leave "
+                         f"--resume out to start one")
+    if args.overwrite and not args.resume and out.is_dir():
+        with RunLock(out):                 # not while another process trains there
+            for name in RUN_FILES:
+                (out / name).unlink(missing_ok=True)
     res = train_run(args.scene, args.out, cfg, resume=args.resume,
                     progress=not args.no_progress)
     _print_results(res)
@@ -138,8 +148,11 @@ def cmd_census(args) -> int:
 def cmd_render(args) -> int:
     from baseline.run import Renderable
 
-    r = Renderable(args.target, args.scene, device=args.device)
+    from baseline.guard import check_output_folder
+
     out = Path(args.output)
+    check_output_folder(out)
+    r = Renderable(args.target, args.scene, device=args.device)
     res = r.evaluate(args.split, render_dir=out)
     print(f"rendered {res['n_views']} {args.split} views to {out} "
           f"(PSNR {res['psnr']:.3f} dB, FPS {res['fps']:.1f})")
@@ -150,6 +163,9 @@ def cmd_encode(args) -> int:
     from baseline.codec.model_codec import encode_model, file_info, format_info, format_rate_check, rate_check
     from baseline.run import file_header, load_run, write_json_atomic
 
+    from baseline.guard import check_output_file
+
+    check_output_file(args.output, overwrite=args.overwrite)
     trainer, scene = load_run(args.run, device="cpu")       # the codec runs on the CPU
     if trainer.phase != "adaptive":
         print(f"note: {args.run} stopped before the entropy model was trained (phase "
@@ -189,7 +205,10 @@ def cmd_decode(args) -> int:
 
     import torch
 
+    from baseline.guard import check_output_folder
+
     out = Path(args.output or Path(args.file).with_suffix(""))
+    check_output_folder(out)               # never a run's folder, never inside a scene
     dec = decode_model(args.file)          # nothing is written unless the file decodes
     print(f"decoded {args.file}: {dec.model.n_anchors} anchors in {dec.decode_s:.2f} s")
     res = {"file": str(args.file), "bytes": Path(args.file).stat().st_size, "decode_s": dec.decode_s,
@@ -273,8 +292,11 @@ def cmd_export_ply(args) -> int:
     from baseline.eval.export import export_run_ply, export_sh_ply
     from baseline.run import coded_state, load_run
 
-    trainer, scene = load_run(args.run, device="cpu")
+    from baseline.guard import check_output_file
+
     out = args.output or str(Path(args.run) / "point_cloud.ply")
+    check_output_file(out)
+    trainer, scene = load_run(args.run, device="cpu")
     # in the adaptive phase: what the codec would store (quantized values, 16-bit positions)
     coded = coded_state(trainer)
     if coded is None:
@@ -487,7 +509,10 @@ def main(argv=None) -> int:
     p = sub.add_parser("train", help="train a model on a scene")
     p.add_argument("scene", help=SCENE_HELP)
     p.add_argument("--out", required=True, help="run folder (config, checkpoint, results)")
-    p.add_argument("--resume", action="store_true", help="continue from the run's checkpoint")
+    p.add_argument("--resume", action="store_true", help="continue from the run's checkpoint "
+                   "(the same scene and training configuration, checked)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="start over in a folder that holds a run (its records are removed)")
     p.add_argument("--no-progress", action="store_true",
                    help="no progress bars (follow OUT/train_log.jsonl instead)")
     _config_args(p)
@@ -532,6 +557,8 @@ def main(argv=None) -> int:
     p = sub.add_parser("encode", help="compress a trained run into one .pgs file")
     p.add_argument("run", help="run folder (trained)")
     p.add_argument("-o", "--output", required=True, help="the .pgs file to write")
+    p.add_argument("--overwrite", action="store_true",
+                   help="allow the output to replace a run's record file (never a scene's)")
     p.add_argument("--weights", choices=["float32", "float16"], default=None,
                    help="network weight precision in the file (default: the run's codec.weight_dtype)")
     p.add_argument("--positions", choices=["raw16", "sorted"], default=None,

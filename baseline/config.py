@@ -49,7 +49,8 @@ class ModelConfig:
     feat_dim: int = 50
     n_offsets: int = 10
     hidden: int = 50
-    voxel_size: float = 0.01             # <= 0: automatic (SPEC.md section 2)
+    voxel_size: float = 0.01             # 0: automatic (SPEC.md section 2; the reference also
+    #                                      reads a negative size so: refused here as a typo)
     update_init_factor: int = 16         # NeRF-Synthetic: 4
     update_hierarchy_factor: int = 4
     update_depth: int = 3
@@ -418,6 +419,10 @@ def validate(cfg: Config) -> None:
             _check_ranges(sec, name, dict(getattr(type(sec), "RANGES", {})))
     if cfg.train.iterations <= 0:
         raise ConfigError("train.iterations must be positive")
+    v = cfg.model.voxel_size
+    if v != 0 and not 1e-6 <= v <= 1e6:
+        raise ConfigError(f"model.voxel_size = {v}: give 0 (automatic: from the points' "
+                          f"nearest-neighbour spacing) or a voxel size in [1e-6, 1e6] scene units")
     if cfg.data.background not in ("black", "white"):
         raise ConfigError(f"data.background must be 'black' or 'white', got '{cfg.data.background}'")
     dev = cfg.train.device

@@ -60,17 +60,24 @@ def versions() -> dict:
 def train_run(scene_path: str, out: str | Path, cfg: Config, resume: bool = False,
               progress: bool = True, evaluate_after: bool = True) -> dict:
     """Train (or resume) a run in ``out`` and evaluate it on the test views."""
+    from baseline.guard import RunLock, check_resume, scene_identity
+
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
     scene = load_scene_for(cfg, scene_path, progress=progress)
-    trainer = Trainer(cfg, scene, out, progress=progress)
-    ck = out / CHECKPOINT_NAME
-    if resume and ck.exists():
-        trainer.load_checkpoint(ck)
-        print(f"resumed from {ck} at iteration {trainer.iteration}")
-    write_json_atomic(out / "scene.json", {"path": str(Path(scene_path).resolve()),
-                                           "protocol": getattr(scene, "protocol", {})})
-    trainer.train()
+    with RunLock(out):                     # one process writes a run folder at a time
+        trainer = Trainer(cfg, scene, out, progress=progress)
+        ck = out / CHECKPOINT_NAME
+        if resume and ck.exists():
+            check_resume(out, cfg, scene, scene_path)   # the same scene and training config
+            trainer.load_checkpoint(ck)
+            print(f"resumed from {ck} at iteration {trainer.iteration}")
+        write_json_atomic(out / "scene.json", {**scene_identity(scene, scene_path),
+                                               "protocol": getattr(scene, "protocol", {})})
+        trainer.train()
+        return _finish_run(trainer, scene, scene_path, out, cfg, evaluate_after)
+
+
+def _finish_run(trainer, scene, scene_path, out: Path, cfg: Config, evaluate_after: bool) -> dict:
     from baseline.device import device_name
     from baseline.render import resolve_backend
 

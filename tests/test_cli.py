@@ -237,3 +237,84 @@ def test_small_things_a_new_user_meets(tmp_path, capsys):
     run_sh = Path(__file__).parent.parent / "run.sh"
     p = subprocess.run(["bash", str(run_sh)], capture_output=True, text=True)
     assert p.returncode == 2 and "usage: ./run.sh demo" in p.stderr
+
+
+def test_nothing_a_user_runs_replaces_their_work(trained, tmp_path, capsys):
+    """Outputs never land on a run's records or inside a scene; training into a run needs
+    --resume (checked: same scene, same training config) or --overwrite; --resume needs a run."""
+    import shutil
+
+    d, scene, run = trained
+    ck = (run / "checkpoint.pt").read_bytes()
+    res = (run / "results.json").read_bytes()
+    assert main(["encode", str(run), "-o", str(run / "checkpoint.pt")]) == 2
+    assert "is the checkpoint.pt of the run" in capsys.readouterr().err
+    assert main(["export-ply", str(run), "-o", str(run / "checkpoint.pt")]) == 2
+    assert main(["encode", str(run), "-o", str(scene / "model.pgs")]) == 2
+    assert "inside the scene folder" in capsys.readouterr().err
+    f = tmp_path / "m.pgs"
+    assert main(["encode", str(run), "-o", str(f)]) == 0        # (records its encode in results)
+    res = (run / "results.json").read_bytes()
+    assert main(["decode", str(f), "-o", str(run)]) == 2
+    assert "holds a run" in capsys.readouterr().err
+    assert main(["decode", str(f), "-o", str(scene / "images" / "x")]) == 2
+    assert main(["train", str(scene), "--out", str(run), "--patch", "demo",
+                 "--set", "train.iterations=150", "--set", "train.threads=1"]) == 2
+    assert "--overwrite" in capsys.readouterr().err
+    assert main(["train", str(scene), "--out", str(scene / "out"), "--patch", "demo"]) == 2
+    assert (run / "checkpoint.pt").read_bytes() == ck and (run / "results.json").read_bytes() == res
+    # --resume: needs a run, the same scene and the same training configuration
+    assert main(["train", str(scene), "--out", str(tmp_path / "none"), "--resume",
+                 "--patch", "demo"]) == 2
+    assert "holds no run to resume" in capsys.readouterr().err
+    other = tmp_path / "other"
+    assert main(["make-scene", str(other), "--views", "10", "--width", "48", "--height", "36",
+                 "--seed", "9"]) == 0
+    copy = tmp_path / "copy"
+    shutil.copytree(run, copy)
+    base = ["--patch", "demo", "--set", "train.iterations=150", "--set", "train.threads=1",
+            "--set", "train.log_every=1000", "--no-progress", "--resume"]
+    assert main(["train", str(other), "--out", str(copy), *base]) == 2
+    err = capsys.readouterr().err
+    assert "cannot resume on this scene" in err and str(other.resolve()) in err
+    assert main(["train", str(scene), "--out", str(copy), *base,
+                 "--set", "model.voxel_size=0.1"]) == 2
+    err = capsys.readouterr().err
+    assert "cannot resume with another training configuration" in err
+    assert "model.voxel_size: 0.03 -> 0.1" in err
+    assert main(["train", str(scene), "--out", str(copy), *base]) == 0      # the same: resumes
+    # --overwrite starts over
+    assert main(["train", str(scene), "--out", str(copy), "--patch", "demo", "--overwrite",
+                 "--set", "train.iterations=60", "--set", "train.threads=1", "--no-progress"]) == 0
+    assert json.loads((copy / "results.json").read_text())["iterations"] == 60
+
+
+def test_a_run_folder_is_owned_by_one_process(tmp_path):
+    """A second process cannot take a run folder while the first holds it; the lock is
+    re-entrant in its process and goes with the process, however it ends."""
+    import subprocess
+    import sys
+    import time
+
+    from baseline.guard import OutputError, RunLock
+
+    run = tmp_path / "run"
+    code = ("import sys, time; from baseline.guard import RunLock; "
+            f"RunLock({str(run)!r}).acquire(); print('held', flush=True); time.sleep(60)")
+    p = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
+    try:
+        assert p.stdout.readline().strip() == "held"
+        with pytest.raises(OutputError, match=f"in use by another pgs process \\(pid {p.pid}\\)"):
+            RunLock(run).acquire()
+    finally:
+        p.kill()                                   # a crash: nothing is cleaned up
+        p.wait()
+    with RunLock(run):                             # free again
+        with RunLock(run):                         # re-entrant
+            pass
+        out = subprocess.run([sys.executable, "-c", code.replace("time.sleep(60)", "pass")],
+                             capture_output=True, text=True)
+        assert out.returncode != 0 and "in use by another pgs process" in out.stderr
+    for _ in range(3):
+        with RunLock(run):
+            pass

@@ -215,3 +215,57 @@ def test_malformed_transforms_give_a_named_error(tmp_path, name, edit, error):
     with pytest.raises(SceneError, match=error) as e:
         load(d, tmp_path)
     assert "transforms_train.json" in str(e.value)
+
+
+def test_colmap_counts_are_checked_before_pycolmap_allocates(scene, tmp_path):
+    """A points3D.bin declaring 2^62 points (or a track, or 2D points, past its bytes) is
+    refused by name at once, before pycolmap sizes an allocation from it."""
+    import struct
+    import time
+
+    pts = scene / "sparse" / "0" / "points3D.bin"
+    raw = bytearray(pts.read_bytes())
+    good = bytes(raw)
+    raw[0:8] = struct.pack("<Q", 1 << 62)
+    pts.write_bytes(bytes(raw))
+    t0 = time.perf_counter()
+    with pytest.raises(SceneError, match="points3D.bin.*declares 4611686018427387904 records"):
+        load(scene, tmp_path)
+    assert time.perf_counter() - t0 < 30
+    raw = bytearray(good)
+    raw[8 + 43:8 + 51] = struct.pack("<Q", 1 << 40)             # the first point's track
+    pts.write_bytes(bytes(raw))
+    with pytest.raises(SceneError, match="point 0 declares a track of"):
+        load(scene, tmp_path)
+    pts.write_bytes(good)
+    ims = scene / "sparse" / "0" / "images.bin"
+    raw = bytearray(ims.read_bytes())
+    nul = raw.index(b"\0", 8 + 64)
+    raw[nul + 1:nul + 9] = struct.pack("<Q", 1 << 50)          # the first image's 2D points
+    ims.write_bytes(bytes(raw))
+    with pytest.raises(SceneError, match="image 0 declares .* 2D points"):
+        load(scene, tmp_path)
+
+
+def test_a_deeply_nested_transforms_file_is_a_named_error(tmp_path):
+    d = _blender(tmp_path)
+    (d / "transforms_train.json").write_text("[" * 100000 + "]" * 100000)
+    with pytest.raises(SceneError, match="nested too deeply|cannot parse"):
+        load(d, tmp_path)
+
+
+def test_a_scene_without_a_training_view_is_a_named_error(tmp_path):
+    one = make_scene(tmp_path / "one", n_views=1, width=48, height=36, n_points=50)
+    with pytest.raises(SceneError, match="no training view"):
+        load(one, tmp_path)
+    sc = load(one, tmp_path, eval=False)
+    assert len(sc.train_cameras) == 1 and not sc.test_cameras
+
+
+def test_voxel_size_out_of_range_is_refused():
+    from baseline.config import ConfigError, build_config
+
+    for bad in ("-0.1", "1e-12", "1e9"):
+        with pytest.raises(ConfigError, match="model.voxel_size"):
+            build_config([], [f"model.voxel_size={bad}"])
+    assert build_config([], ["model.voxel_size=0"]).model.voxel_size == 0

@@ -45,6 +45,9 @@ GRID_CODINGS = ("all", "used")
 WEIGHT_DTYPES = ("float32", "float16")
 
 
+BINDING_FIELDS = ("file_version", "file_id", "section_digests")   # added by digest_sections
+
+
 def file_id_of(header: dict, sections) -> str:
     """The id that keys a file's section digests: BLAKE2b-64 over the rest of its header and
     every section (so one model always encodes to the same bytes, and two files' ids differ
@@ -288,6 +291,12 @@ def _check_digests(header: dict, sections: dict) -> None:
         if not isinstance(d, str) or section_digest(fid, payload) != d:
             raise BitstreamError(f"section '{name}' does not belong to this file (its digest "
                                  f"does not match the header's: copied from another file?)")
+    # the id is content-derived: a header edited after writing (its CRC fixed) no longer
+    # hashes to it, even where every section still matches its digest
+    rest = {k: v for k, v in header.items() if k not in BINDING_FIELDS}
+    if file_id_of(rest, list(sections.items())) != fid:
+        raise BitstreamError("file_id: the header does not hash to the file's id (a header "
+                             "field was edited after the file was written)")
 
 
 def _check_attrs(v: Any, k: int, sections: dict) -> list:

@@ -48,9 +48,9 @@ class Case:
 def _resign(header: dict, sections: list) -> bytes:
     """A container with ``header`` and ``sections`` whose section digests are recomputed (the
     file is then as valid as the encoder would make it: only its content is hostile)."""
-    from baseline.codec.header import digest_sections
+    from baseline.codec.header import BINDING_FIELDS, digest_sections
 
-    h = {k: v for k, v in header.items() if k not in ("file_version", "file_id", "section_digests")}
+    h = {k: v for k, v in header.items() if k not in BINDING_FIELDS}
     h.update(digest_sections(h, sections))
     return build_container(h, sections)
 
@@ -112,7 +112,17 @@ HEADER_EDITS = [
     ("file_id", "zz"), ("file_id", 3), ("section_digests", _DELETE), ("section_digests", []),
     ("format", "other"), ("format", _DELETE),
 ]
-HARMLESS_EDITS = [("scene", "/somewhere/else"), ("scene", None)]
+# codings the header declares for a section: another value re-signed contradicts the payload
+CODING_EDITS = [("position_coding", "sorted"), ("position_coding", "raw16"),
+                ("mask_coding", "patterns"), ("mask_coding", "bernoulli"),
+                ("grid_coding", "used"), ("grid_coding", "all"),
+                ("weight_dtype", "float16"), ("weight_dtype", "float32")]
+# fields the sections do not read: edited without re-signing, the file's id no longer matches
+ID_ONLY_EDITS = [("scene", "/somewhere/else"), ("scene", None), ("view_center", [1.0, 2.0, 3.0]),
+                 ("config.model.voxel_size", 0.5), ("config.entropy.mask_threshold", 0.02),
+                 ("config.train.seed", 7), ("weight_dtype", "float16"),
+                 ("position_coding", "sorted"), ("mask_coding", "patterns"),
+                 ("grid_coding", "used")]
 
 
 def crafted_cases(files: dict, n_random: int = 200, seed: int = 0) -> list:
@@ -162,10 +172,21 @@ def crafted_cases(files: dict, n_random: int = 200, seed: int = 0) -> list:
             h = _edit(header, "n_anchors", value)
             cases.append(Case(f"{label}: header n_anchors = {value} (file: {n0})",
                               build_container(h, sec_list)))
-        for path, value in HARMLESS_EDITS:
-            cases.append(Case(f"{label}: header {path} = {value!r} (harmless)",
-                              build_container(_edit(header, path, value), sec_list),
-                              must_fail=False))
+        for path, value in ID_ONLY_EDITS:
+            try:
+                h = _edit(header, path, value)
+            except (KeyError, IndexError, TypeError, ValueError):
+                continue
+            if h != header:
+                cases.append(Case(f"{label}: header {path} = {value!r} (not re-signed)",
+                                  build_container(h, sec_list)))
+        # a coding the sections were not written with, the file re-signed: the sections
+        # contradict the header, which must be found (not decoded as something else)
+        for path, value in CODING_EDITS:
+            h = _edit(header, path, value)
+            if h != header:
+                cases.append(Case(f"{label}: header {path} = {value!r} (re-signed)",
+                                  _resign(h, sec_list)))
         # sections removed (header untouched), and the same re-signed (the manifest then
         # agrees: the decoder must still find the component missing)
         for nm in names:

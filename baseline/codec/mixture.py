@@ -255,7 +255,12 @@ class MixtureStreamDecoder:
         return self._table.restore(s)
 
     def check_done(self) -> None:
+        """Every chunk and escape used, and every payload byte: a valid stream's decoder ends
+        exactly at its last byte (the coder reads 5 bytes ahead of the 5 the encoder flushes)."""
         self._table.check_done()
+        if int(self._st[2]) != self.data.size:
+            raise BitstreamError(f"{self.what}: the range-coded payload has {self.data.size} "
+                                 f"bytes, its symbols used {int(self._st[2])}")
 
 
 def mixture_pmf(s, smin, smax, m1, s1, m2, s2, w1) -> np.ndarray:

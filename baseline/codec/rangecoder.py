@@ -137,6 +137,8 @@ def decode_bernoulli(blob, expected_n: Optional[int] = None, what: str = "bernou
     out = np.asarray(out, dtype=np.uint8)
     if int(out.sum()) != n1:
         raise BitstreamError(f"{what}: decoded {int(out.sum())} ones, header says {n1}")
+    if not dec.maybe_exhausted():
+        raise BitstreamError(f"{what}: the payload holds words its {n} values did not use")
     return out
 
 
@@ -180,6 +182,8 @@ def decode_categorical(payload, counts, what: str) -> np.ndarray:
     if (idx.size != n or np.any(idx < 0) or np.any(idx >= len(counts))
             or not np.array_equal(np.bincount(idx, minlength=len(counts)), counts)):
         raise BitstreamError(f"{what}: decoded symbols do not match their histogram")
+    if not dec.maybe_exhausted():
+        raise BitstreamError(f"{what}: the payload holds words its {n} symbols did not use")
     return idx
 
 
@@ -259,7 +263,14 @@ class GaussianStreamDecoder:
         return self._table.restore(s)
 
     def check_done(self) -> None:
+        """Every chunk and escape used, and the range-coded words too (words its symbols did
+        not need, e.g. a payload padded after encoding, are refused; one appended word lies
+        inside constriction's decoder look-ahead and cannot be told from the end: the symbols
+        decoded are the same)."""
         self._table.check_done()
+        if not self._dec.maybe_exhausted():
+            raise BitstreamError(f"{self.what}: the range-coded payload holds words its symbols "
+                                 f"did not use")
 
 
 # --------------------------------------------------------------------------- positions

@@ -79,6 +79,98 @@ def colmap_model_dir(path: Path) -> Path | None:
     return None
 
 
+MAX_JSON_BYTES = 256 << 20
+
+
+def read_bounded(path: Path, cap: int) -> str:
+    """A text file's content, refused above ``cap`` bytes or when it is not a regular file
+    (a device or pipe is never read to its end)."""
+    import stat
+
+    st = path.stat()
+    if not stat.S_ISREG(st.st_mode):
+        raise SceneError(f"{path}: not a regular file")
+    if st.st_size > cap:
+        raise SceneError(f"{path}: {st.st_size} bytes, more than the {cap} a scene file may have")
+    return path.read_text()
+
+
+# the smallest record of each COLMAP binary file (bytes): cameras (id, model, width, height, one
+# parameter), images (id, qvec, tvec, camera id, empty name + NUL, point count), points3D (id,
+# xyz, rgb, error, track length)
+_COLMAP_MIN_RECORD = {"cameras": 32, "images": 73, "points3D": 51}
+
+
+def check_colmap_bin(path: Path, kind: str) -> None:
+    """Walk a COLMAP ``.bin`` file's records checking every declared count (records, 2D points,
+    track lengths) against the bytes left, so that a corrupt or hostile file is refused with its
+    name before pycolmap sizes an allocation from it (a points3D.bin declaring 2^62 points made
+    it allocate gigabytes). The walk reads counts only; pycolmap parses the values."""
+    import struct
+
+    data = path.read_bytes()
+    size = len(data)
+
+    def bad(what):
+        return SceneError(f"{path}: corrupt COLMAP {kind}.bin: {what}")
+
+    if size < 8:
+        raise bad(f"{size} bytes, shorter than its record count")
+    (n,) = struct.unpack_from("<Q", data, 0)
+    if n * _COLMAP_MIN_RECORD[kind] > size - 8:
+        raise bad(f"declares {n} records, more than its {size} bytes can hold")
+    off = 8
+    if kind == "cameras":
+        for i in range(n):
+            if off + 24 > size:
+                raise bad(f"camera {i} cut off")
+            (model,) = struct.unpack_from("<i", data, off + 4)
+            n_par = _camera_params(int(model))
+            if n_par is None:
+                raise bad(f"camera {i} has an unknown model id {model}")
+            off += 24 + 8 * n_par
+    elif kind == "images":
+        for i in range(n):
+            end = off + 64
+            if end > size:
+                raise bad(f"image {i} cut off")
+            nul = data.find(b"\0", end)
+            if nul < 0:
+                raise bad(f"image {i}: its name has no end")
+            off = nul + 1
+            if off + 8 > size:
+                raise bad(f"image {i} cut off")
+            (n2d,) = struct.unpack_from("<Q", data, off)
+            off += 8
+            if n2d > (size - off) // 24:
+                raise bad(f"image {i} declares {n2d} 2D points, more than the bytes left")
+            off += 24 * n2d
+    else:
+        for i in range(n):
+            if off + 51 > size:
+                raise bad(f"point {i} cut off")
+            (tl,) = struct.unpack_from("<Q", data, off + 43)
+            off += 51
+            if tl > (size - off) // 8:
+                raise bad(f"point {i} declares a track of {tl}, more than the bytes left")
+            off += 8 * tl
+    if off > size:
+        raise bad("its records run past its end")
+
+
+def _camera_params(model_id: int) -> int | None:
+    """How many parameters a COLMAP camera model id has, as the installed pycolmap defines
+    it; None for an id it does not know."""
+    if not 0 <= model_id < 256:
+        return None
+    try:
+        n = len(pycolmap.Camera.create_from_model_id(0, pycolmap.CameraModelId(model_id), 1.0,
+                                                     10, 10).params)
+    except Exception:  # noqa: BLE001 - any failure: not a model this pycolmap has
+        return None
+    return n or None
+
+
 def _model_file(d: Path, stem: str) -> Path | None:
     for ext in (".bin", ".txt"):
         if (d / (stem + ext)).is_file():
@@ -170,6 +262,9 @@ def read_colmap(path: Path, images: str | None, resolution: int) -> ReaderResult
     if missing:
         raise SceneError(f"{model_dir}: incomplete COLMAP model, missing "
                          + ", ".join(f"{s}.bin/.txt" for s in missing))
+    for stem, f in files.items():
+        if f.suffix == ".bin":
+            check_colmap_bin(f, stem)      # declared counts against the bytes, before pycolmap
     try:
         rec = pycolmap.Reconstruction(str(model_dir))
     except Exception as e:  # pycolmap raises assorted errors for broken files
@@ -301,9 +396,11 @@ def _blender_camera(json_path: Path, meta: dict, size: tuple[int, int],
 def _read_transforms(json_path: Path, split: str | None) -> list[ViewRecord]:
     from .images import image_size
     try:
-        meta = json.loads(json_path.read_text())
+        meta = json.loads(read_bounded(json_path, MAX_JSON_BYTES))
     except (OSError, ValueError) as e:
         raise SceneError(f"{json_path}: cannot parse: {e}") from e
+    except RecursionError:
+        raise SceneError(f"{json_path}: cannot parse: nested too deeply") from None
     if not isinstance(meta, dict):
         raise SceneError(f"{json_path}: the top level must be an object with a 'frames' list, "
                          f"got a {type(meta).__name__}")

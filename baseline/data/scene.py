@@ -309,6 +309,11 @@ def load_scene(path: str | os.PathLike, resolution: int = -1, images: str | None
         is_test = [k % test_every == 0 for k in range(len(views))]
         split_desc = f"every {test_every}th view in name order is a test view (index % " \
                      f"{test_every} == 0)"
+    if all(is_test):
+        raise SceneError(f"{path}: no training view: {len(views)} view(s), and the split ("
+                         f"{split_desc}) makes every one a test view; a scene needs at least "
+                         f"{2 if fmt != 'blender' else 1} views (or data.eval = false to train "
+                         f"on all of them)")
 
     # ---- sizes, intrinsics, cache recipes
     cache_root = Path(cache_dir).expanduser() if cache_dir is not None else _default_cache_root(path)

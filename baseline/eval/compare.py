@@ -223,7 +223,16 @@ def run_reference(spec: RunSpec, scene_path: str, progress: bool = True,
                   on_stage: Optional[Callable[[str], None]] = None) -> dict:
     """Train the reference (if not yet), measure its float32 size; return its row. Its quality
     is the trained model's on the test views (nothing is coded)."""
+    from baseline.guard import RunLock
+
     stage = on_stage or (lambda s: None)
+    if records_only(spec):
+        return _reference_stages(spec, scene_path, progress, stage)
+    with RunLock(spec.dir):             # one process brings a run to the end at a time
+        return _reference_stages(spec, scene_path, progress, stage)
+
+
+def _reference_stages(spec, scene_path, progress, stage) -> dict:
     res, done = _train_stage(spec, scene_path, progress, stage)
     record = _read_json(spec.dir / RECORD)
     if record.get("config_hash") != spec.hash or done or "reference" not in record:
@@ -449,9 +458,18 @@ def run_one(spec: RunSpec, scene_path: str, lpips_fn=None, lpips: Optional[str] 
     recorded (the same bytes are written again; times and FPS are retaken, e.g. on a quiet
     machine after runs were trained side by side). ``codec``: codec settings applied at the
     encode stage (:func:`codec_overrides`); a file written with other settings is redone."""
-    from baseline.train.trainer import set_threads
+    from baseline.guard import RunLock
 
     stage = on_stage or (lambda s: None)
+    if records_only(spec):
+        return _run_stages(spec, scene_path, lpips_fn, lpips, progress, stage, remeasure, codec)
+    with RunLock(spec.dir):             # one process brings a run to the end at a time
+        return _run_stages(spec, scene_path, lpips_fn, lpips, progress, stage, remeasure, codec)
+
+
+def _run_stages(spec, scene_path, lpips_fn, lpips, progress, stage, remeasure, codec) -> dict:
+    from baseline.train.trainer import set_threads
+
     res, done = _train_stage(spec, scene_path, progress, stage)
     record = _read_json(spec.dir / RECORD)
     if record.get("config_hash") != spec.hash or done:
@@ -689,8 +707,10 @@ def run_compare(scene: str | Path, out: str | Path, vs: list[str] = (),
 
     if not report_only:                 # a wrong scene path leaves no output folder behind
         from baseline.data.readers import detect_format
+        from baseline.guard import check_output_folder
 
         detect_format(Path(scene_path))
+        check_output_folder(out)        # not a run's folder, not inside the scene
     out.mkdir(parents=True, exist_ok=True)
 
     results = {

@@ -21,6 +21,7 @@ Executors (registry kind ``executor``):
 from __future__ import annotations
 
 import os
+import sys
 import traceback
 from dataclasses import asdict, dataclass
 from typing import Callable, Optional
@@ -192,10 +193,13 @@ class LocalExecutor:
             except KeyboardInterrupt:
                 raise
             except Exception as e:  # noqa: BLE001 - reported by name below
-                err = f"{type(e).__name__}: {e}"
+                err = f"{type(e).__name__}: {' '.join(str(e).split())}"
                 if attempt == self.retries:
                     res["failed"].append((j.label, err))
-                    traceback.print_exc()
+                    # one line (the failure list names it again); PGS_TRACEBACK=1 for the stack
+                    print(f"run failed: {j.label}: {err}", file=sys.stderr)
+                    if os.environ.get("PGS_TRACEBACK"):
+                        traceback.print_exc()
 
 
 # ---------------------------------------------------------------------------- Ray
