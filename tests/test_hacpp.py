@@ -189,6 +189,31 @@ def test_hac_and_predict_gs_round_trip_with_hacpp(hacpp_files, name):
         assert t.entropy.sizes == [5] * 5
 
 
+@pytest.mark.parametrize("name", ["hac", "pgs"])
+def test_float16_weights_decode_and_a_header_contradicting_them_is_refused(hacpp_files, name,
+                                                                           tmp_path):
+    """Every weight blob of a float16 file (networks, hyperprior, channel context, grids) stores
+    float16 tensors; the same file re-signed as float32 is refused by the decoder."""
+    import copy
+    import dataclasses
+
+    from baseline.codec.container import BitstreamError, read_container
+    from baseline.codec.hostile import _resign
+    from baseline.codec.model_codec import decode_model, encode_model
+    t, _, _ = hacpp_files[name]
+    model, entropy = copy.deepcopy(t.model), copy.deepcopy(t.entropy)
+    cfg = dataclasses.replace(t.cfg, codec=dataclasses.replace(t.cfg.codec, weight_dtype="float16"))
+    st = encode_model(cfg, model, entropy, tmp_path / "h.pgs")
+    dec = decode_model(tmp_path / "h.pgs")
+    for k, v in st["values"].items():
+        assert torch.equal(v, dec.model.fixed_values[k]), k
+    header, sections = read_container(tmp_path / "h.pgs")
+    header["weight_dtype"] = "float32"
+    (tmp_path / "bad.pgs").write_bytes(_resign(header, list(sections.items())))
+    with pytest.raises(BitstreamError, match="weight_dtype"):
+        decode_model(tmp_path / "bad.pgs")
+
+
 def test_hacpp_file_decodes_identically_with_two_threads(hacpp_files, tmp_path):
     t, st, path = hacpp_files["pgs"]
     out = tmp_path / "vals.pt"

@@ -173,10 +173,12 @@ def test_auto_sized_sfp_decodes_after_the_anchor_count_changed(tmp_path):
     with torch.no_grad():
         assert torch.equal(dec.model.provider.predict(st["xyz_q"]), model.provider.predict(st["xyz_q"]))
     # a damaged state in the header is a clear bitstream error, not a crash
-    from baseline.codec.container import BitstreamError, read_container, write_container
+    # (the header re-signed as an encoder would: only its content is wrong)
+    from baseline.codec.container import BitstreamError, read_container
+    from baseline.codec.hostile import _resign
     header, sections = read_container(tmp_path / "m.pgs")
     header["module_state"]["provider"] = {"grid": "junk"}
-    write_container(tmp_path / "bad.pgs", header, list(sections.items()))
+    (tmp_path / "bad.pgs").write_bytes(_resign(header, list(sections.items())))
     with pytest.raises(BitstreamError, match="module_state"):
         decode_model(tmp_path / "bad.pgs")
 

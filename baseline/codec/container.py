@@ -129,7 +129,14 @@ def read_file_bytes(path: Union[str, os.PathLike], what: str = "a .pgs file") ->
                              f"(PGS_MAX_FILE_MB raises it)")
     try:
         with open(path, "rb") as f:
-            data = f.read(cap + 1)
+            # read(n) allocates n bytes up front: ask for the size stat gave (plus one byte to
+            # see a file that grew), then at most the cap in bounded chunks
+            data = f.read(st.st_size + 1)
+            while len(data) <= cap:
+                more = f.read(min(1 << 24, cap + 1 - len(data)))
+                if not more:
+                    break
+                data += more
     except OSError as e:
         raise BitstreamError(f"{where}: cannot read it ({e.strerror or e})") from None
     if len(data) > cap:                  # grew while being read

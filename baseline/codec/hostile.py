@@ -117,6 +117,8 @@ CODING_EDITS = [("position_coding", "sorted"), ("position_coding", "raw16"),
                 ("mask_coding", "patterns"), ("mask_coding", "bernoulli"),
                 ("grid_coding", "used"), ("grid_coding", "all"),
                 ("weight_dtype", "float16"), ("weight_dtype", "float32")]
+CODING_DEFAULTS = {"position_coding": "raw16", "mask_coding": "bernoulli", "grid_coding": "all",
+                   "weight_dtype": "float32"}
 # fields the sections do not read: edited without re-signing, the file's id no longer matches
 ID_ONLY_EDITS = [("scene", "/somewhere/else"), ("scene", None), ("view_center", [1.0, 2.0, 3.0]),
                  ("config.model.voxel_size", 0.5), ("config.entropy.mask_threshold", 0.02),
@@ -184,7 +186,7 @@ def crafted_cases(files: dict, n_random: int = 200, seed: int = 0) -> list:
         # contradict the header, which must be found (not decoded as something else)
         for path, value in CODING_EDITS:
             h = _edit(header, path, value)
-            if h != header:
+            if header.get(path, CODING_DEFAULTS[path]) != value:   # (an absent field: default)
                 cases.append(Case(f"{label}: header {path} = {value!r} (re-signed)",
                                   _resign(h, sec_list)))
         # sections removed (header untouched), and the same re-signed (the manifest then

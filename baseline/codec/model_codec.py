@@ -42,7 +42,8 @@ from baseline.codec.positions import decode_positions, encode_positions
 from baseline.codec.rangecoder import (anchor_bounds, bernoulli_counts, decode_bernoulli,
                                        dequantize_positions, encode_bernoulli, pack_positions,
                                        quantize_positions, unpack_positions)
-from baseline.codec.weights import pack_state_dict, round_module_, unpack_state_dict
+from baseline.codec.weights import (declare_precision, expect_precision, pack_state_dict,
+                                    round_module_, unpack_state_dict)
 from baseline.config import GRID_CODINGS
 from baseline.contracts import feature_cache
 
@@ -254,7 +255,8 @@ def decode_model(path: str | Path, max_bytes: Optional[int] = None) -> DecodedMo
     ``max_bytes`` (default :func:`baseline.codec.header.memory_budget`).
     """
     try:
-        return _decode_model(path, max_bytes)
+        with expect_precision(None):          # declared once the header is read
+            return _decode_model(path, max_bytes)
     except BitstreamError as e:
         msg = str(e)
         raise BitstreamError(msg if msg.startswith(str(path)) else f"{path}: {msg}") from None
@@ -270,6 +272,7 @@ def _decode_model(path, max_bytes) -> DecodedModel:
     header, sections = read_container(path)
     size = Path(path).stat().st_size if not isinstance(path, (bytes, bytearray)) else len(path)
     facts = check_header(header, sections, size, max_bytes)
+    declare_precision(facts.weight_dtype)
     N, K = facts.n_anchors, facts.n_offsets
     lo, hi = (np.asarray(b, dtype=np.float32) for b in facts.bounds)
     cfg_dict = dict(header["config"])

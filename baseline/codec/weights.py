@@ -12,10 +12,12 @@ that depends on the weights is coded (the entropy model's probabilities in parti
 """
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import json
 import struct
 from collections import OrderedDict
-from typing import Dict, Iterable, Mapping
+from typing import Dict, Iterable, Mapping, Optional
 
 import numpy as np
 import torch
@@ -77,11 +79,37 @@ def pack_state_dict(state_dict: Mapping[str, torch.Tensor], precision: str = "fl
     return _HDR.pack(_TAG, len(idx)) + idx + b"".join(chunks)
 
 
+# the precision the file's header declares, while a file is decoded (see expect_precision)
+_DECLARED: "contextvars.ContextVar[Optional[str]]" = contextvars.ContextVar("pgs_weight_dtype",
+                                                                           default=None)
+
+
+@contextlib.contextmanager
+def expect_precision(precision: Optional[str]):
+    """Within the block, :func:`unpack_state_dict` checks every blob against the precision a
+    file's header declares: a float32 file stores no float16 tensor, and a float16 file's blob
+    with floating tensors stores at least one as float16 (only ``keep`` tensors such as grid
+    bounds stay float32). The weight blobs describe themselves, so without this check a header
+    contradicting its sections would decode unnoticed."""
+    token = _DECLARED.set(precision)
+    try:
+        yield
+    finally:
+        _DECLARED.reset(token)
+
+
+def declare_precision(precision: Optional[str]) -> None:
+    """Set the declared precision inside an :func:`expect_precision` block (once the header
+    has been read)."""
+    _DECLARED.set(precision)
+
+
 def unpack_state_dict(blob, as_float32: bool = True, what: str = "weights",
                       check_finite: bool = True) -> "OrderedDict[str, torch.Tensor]":
     """Inverse of :func:`pack_state_dict`. float16 tensors come back as float32 by default.
     Every floating tensor must be finite (``check_finite``): a decoded network with NaN or Inf
-    weights is refused, naming the tensor, instead of rendering nothing."""
+    weights is refused, naming the tensor, instead of rendering nothing. Inside
+    :func:`expect_precision` the stored types must agree with the declared precision."""
     blob = bytes(blob)
     if len(blob) < _HDR.size:
         raise BitstreamError(f"{what}: truncated weight header")
@@ -96,6 +124,7 @@ def unpack_state_dict(blob, as_float32: bool = True, what: str = "weights",
         raise BitstreamError(f"{what}: damaged weight index ({e})") from None
     off = _HDR.size + ilen
     out: "OrderedDict[str, torch.Tensor]" = OrderedDict()
+    float_types = set()
     if not isinstance(index, list):
         raise BitstreamError(f"{what}: damaged weight index")
     for entry in index:
@@ -117,6 +146,8 @@ def unpack_state_dict(blob, as_float32: bool = True, what: str = "weights",
             raise BitstreamError(f"{what}: tensor '{name}' needs {nbytes} bytes, {len(blob) - off} left")
         arr = np.frombuffer(blob, dtype=npdt, count=count, offset=off).reshape(shape)
         off += nbytes
+        if sname.startswith("float"):
+            float_types.add(sname)
         if sname == "bool":
             t = torch.from_numpy(arr.astype(bool))
         else:
@@ -128,6 +159,13 @@ def unpack_state_dict(blob, as_float32: bool = True, what: str = "weights",
         out[name] = t
     if off != len(blob):
         raise BitstreamError(f"{what}: {len(blob) - off} unexpected trailing bytes")
+    declared = _DECLARED.get()
+    if declared == "float32" and "float16" in float_types:
+        raise BitstreamError(f"{what}: stores float16 tensors, the header declares float32 "
+                             f"weights (weight_dtype)")
+    if declared == "float16" and float_types and "float16" not in float_types:
+        raise BitstreamError(f"{what}: stores no float16 tensor, the header declares float16 "
+                             f"weights (weight_dtype)")
     return out
 
 
