@@ -17,6 +17,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import sys
 from pathlib import Path
 from typing import Optional
 
@@ -90,9 +91,13 @@ class RunLock:
     takes it again)."""
 
     _held: dict = {}              # resolved folder -> [fd, depth] held by this process
+    # a worker of an executor waits for a run another process holds (a retried job whose first
+    # attempt still runs finds it finished) instead of failing; a user's command never waits
+    wait_by_default = False
 
-    def __init__(self, folder):
+    def __init__(self, folder, wait: Optional[bool] = None):
         self.folder = Path(folder)
+        self.wait = RunLock.wait_by_default if wait is None else wait
         self._fd: Optional[int] = None
         self._key: Optional[str] = None
 
@@ -113,9 +118,13 @@ class RunLock:
                 holder = os.pread(fd, 64, 0).decode("ascii", "replace").strip() or "?"
             except OSError:
                 holder = "?"
-            os.close(fd)
-            raise OutputError(f"{self.folder}: in use by another pgs process (pid {holder}); "
-                              f"wait for it to end or stop it") from None
+            if not self.wait:
+                os.close(fd)
+                raise OutputError(f"{self.folder}: in use by another pgs process (pid {holder}); "
+                                  f"wait for it to end or stop it") from None
+            print(f"{self.folder}: in use by pid {holder}; waiting for it", file=sys.stderr,
+                  flush=True)
+            fcntl.flock(fd, fcntl.LOCK_EX)
         os.ftruncate(fd, 0)
         os.pwrite(fd, str(os.getpid()).encode("ascii"), 0)
         RunLock._held[self._key] = [fd, 1]

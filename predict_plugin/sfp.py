@@ -41,9 +41,11 @@ def _layout_from_json(layout: dict) -> dict:
 class SpatialFeaturePool(nn.Module):
     # what its bitstream sections hold (pgs info / reports: "sfp.grid", "sfp.fusion")
     SECTION_LABELS = {"grid": "grid", "weights": "fusion"}
-    # its training-semantics version (baseline.config.component_semantics): 2 = the fusion MLP's
-    # last layer starts at zero (predict.fusion_init = "zero"); 1 = PyTorch's default init
-    TRAINING_SEMANTICS = 2
+    # its training-semantics version (baseline.config.component_semantics): 3 = its initial
+    # values come from a random stream of its own, so the decoder starts as HAC's with the same
+    # seed (baseline.scaffold.model); 2 = the fusion MLP's last layer starts at zero
+    # (predict.fusion_init = "zero"); 1 = PyTorch's default init
+    TRAINING_SEMANTICS = 3
 
     def __init__(self, model, cfg, codec_state: Optional[dict] = None):
         """``codec_state``: what :meth:`codec_state` returned when the file was written (the

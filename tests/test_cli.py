@@ -323,3 +323,17 @@ def test_a_run_folder_is_owned_by_one_process(tmp_path):
     for _ in range(3):
         with RunLock(run):
             pass
+    # an executor's worker waits for the holder instead (a retried job whose first attempt
+    # still runs): it gets the run once the holder ends
+    done = tmp_path / "holder-done"
+    p = subprocess.Popen([sys.executable, "-c", code.replace(
+        "time.sleep(60)", f"time.sleep(2); open({str(done)!r}, 'w').close()")],
+        stdout=subprocess.PIPE, text=True)
+    try:
+        assert p.stdout.readline().strip() == "held"
+        assert not done.exists()
+        with RunLock(run, wait=True):
+            assert done.exists()                      # only after the holder's last step
+    finally:
+        p.kill()
+        p.wait()

@@ -205,7 +205,7 @@ def test_fusion_starts_at_zero_by_default_and_learns_away_from_it():
 
 
 def test_sfp_training_semantics_changes_only_predict_gs_hashes():
-    """The SFP's component semantics (2: zero fusion init) enters the hash of the configs that
+    """The SFP's component semantics (3: its own random stream) enters the hash of the configs that
     use it: the archived semantics-2 truck records of HAC keep their folder hashes, those of
     Predict-GS trained with the old init do not."""
     from pathlib import Path
@@ -214,13 +214,39 @@ def test_sfp_training_semantics_changes_only_predict_gs_hashes():
 
     root = Path(__file__).parent.parent / "docs/examples/truck-r4-cpu-s2/runs"
     assert component_semantics(build_config(["cpu"])) == {}
-    assert component_semantics(build_config(["cpu", "predict-gs"])) == {"feature_provider.sfp": 2}
+    assert component_semantics(build_config(["cpu", "predict-gs"])) == {"feature_provider.sfp": 3}
     for d in root.iterdir():
         method, lam, seed, h = d.name.rsplit("-", 3)
         cfg = build_config(["cpu"] + (["predict-gs"] if method == "predict-gs" else []),
                            ["data.resolution=4", f"entropy.lmbda={float(lam[1:])!r}",
                             f"train.seed={int(seed[1:])}"])
         assert (config_hash(cfg) == h) == (method == "baseline"), d.name
+
+
+def test_hac_and_predict_gs_start_from_the_same_decoder_with_one_seed(small_scene, tmp_path):
+    """The provider draws its initial values from a stream of its own: with one seed, HAC and
+    Predict-GS start from the same decoder weights (the same slots start opaque, as f_c = 0 and
+    HAC's features are 0) and the same anchors; HAC's is the draw that follows the seed."""
+    from baseline.data.scene import load_scene
+    from baseline.train.trainer import Trainer
+
+    scene = load_scene(small_scene, progress=False)
+    models = {}
+    for patches in (["demo"], ["demo", "predict-gs"]):
+        cfg = build_config(patches, ["train.seed=3", "train.threads=1"])
+        models[len(patches)] = Trainer(cfg, scene, tmp_path / str(len(patches)),
+                                       progress=False).model
+    hac, pgs = models[1], models[2]
+    for (n, a), (_, b) in zip(hac.decoder.state_dict().items(), pgs.decoder.state_dict().items()):
+        assert torch.equal(a, b), n
+    assert torch.equal(hac.xyz, pgs.xyz)
+    # and it is the draw that follows the seed, as before the provider had its own stream
+    from baseline.scaffold.model import DecoderMLPs
+    torch.manual_seed(3)
+    ref = DecoderMLPs(hac.provider.feature_dim, hac.n_offsets, cfg.model.hidden,
+                      cfg.model.use_distance)
+    for (n, a), (_, b) in zip(ref.state_dict().items(), hac.decoder.state_dict().items()):
+        assert torch.equal(a, b), n
 
 
 def test_contracted_sfp_box_is_the_inner_quantiles_and_decodes_the_same(tmp_path):

@@ -68,6 +68,9 @@ def run_job(job: Job, threads: int = 0) -> dict:
     from baseline.eval.metrics import load_lpips
 
     reg.ensure_loaded()
+    if threads > 0:                      # a pool worker (not the user's process)
+        from baseline.guard import RunLock
+        RunLock.wait_by_default = True
     _maybe_fail_for_tests(job)
     spec = job_spec(job)
     if job.reference:
@@ -169,10 +172,14 @@ class LocalExecutor:
                             pools[i] = cf.ProcessPoolExecutor(
                                 1, mp_context=mp.get_context("spawn"), initializer=_worker_init,
                                 initargs=(share[i], threads))
+                        err = f"{type(e).__name__}: {' '.join(str(e).split())}"
                         if attempts[j] <= self.retries:
+                            # said at once (the final failure alone would hide the cause)
+                            print(f"run attempt {attempts[j]} failed, retrying: {j.label}: "
+                                  f"{err}", file=sys.stderr, flush=True)
                             queue.insert(0, j)
                         else:
-                            res["failed"].append((j.label, f"{type(e).__name__}: {e}"))
+                            res["failed"].append((j.label, err))
                             bar.update(1)
                     if queue:
                         submit(i, queue.pop(0))

@@ -110,6 +110,9 @@ def kept_gaussians(*, means, cov, raw_color, opacities, scales_base, anchor_inde
                      selection=selection, opacity_all=opacity_all, visible=visible)
 
 
+# the provider's own random stream: the run's seed + this (see AnchorModel.__init__)
+PROVIDER_SEED_OFFSET = 0x5EED
+
 class AnchorModel(nn.Module):
     """Anchors + feature provider + decoder (+ optional refiner).
 
@@ -140,7 +143,17 @@ class AnchorModel(nn.Module):
         # written before births were kept); never coded, read by the census (eval/census.py)
         self.iteration = 0          # set by the trainer before each step
         self.add_per_anchor("birth", torch.zeros(N), self._grow_birth, trainable=False)
-        self.provider = provider_factory(self)
+        # The provider draws its initial values from a stream of its own (seeded from the run's
+        # seed), so every method trained with one seed starts from the same decoder. The heads'
+        # initial weights decide which of the K slots start opaque (features start at zero), a
+        # lottery that training barely changes; a provider that draws random values (the SFP's
+        # grid and fusion MLP) otherwise shifted the decoder's draw and with it the lottery:
+        # seed 0 on truck started HAC at 42% kept and Predict-GS at 70%
+        # (docs/notes/predict-gs-gaussian-count.md). HAC's per-anchor provider draws nothing,
+        # so its decoder is unchanged.
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed((torch.initial_seed() + PROVIDER_SEED_OFFSET) % (1 << 63))
+            self.provider = provider_factory(self)
         self.decoder = DecoderMLPs(self.provider.feature_dim, K, cfg_model.hidden, cfg_model.use_distance)
         self.refiner = refiner_factory(self) if refiner_factory is not None else None
 
