@@ -295,3 +295,25 @@ def test_contracted_sfp_box_is_the_inner_quantiles_and_decodes_the_same(tmp_path
     dec2 = decode_model(tmp_path / "used.pgs")
     assert (tmp_path / "used.pgs").stat().st_size < (tmp_path / "m.pgs").stat().st_size
     assert torch.equal(dec2.model.provider.predict(dec2.model.xyz), f_dec)
+
+
+def test_kept_share_probe_tool(small_scene, capsys):
+    """tools/kept_share_probe.py: with one seed HAC and Predict-GS start with the same kept
+    share (the same decoder, zero features); a short training reports each asked step."""
+    import importlib.util
+    import json
+    import pathlib
+
+    spec = importlib.util.spec_from_file_location(
+        "kept_share_probe", pathlib.Path(__file__).parents[1] / "tools" / "kept_share_probe.py")
+    tool = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(tool)
+    assert tool.main([str(small_scene), "--patch", "demo", "--init-seeds", "1"]) == 0
+    rows = [json.loads(x) for x in capsys.readouterr().out.splitlines()]
+    assert len(rows) == 2 and rows[0]["kept_share"] == rows[1]["kept_share"]
+    assert 0 < rows[0]["kept_share"] <= 1 and abs(sum(rows[0]["per_anchor"]) - 1) < 1e-2
+    assert tool.main([str(small_scene), "--patch", "demo", "--patch", "predict-gs",
+                      "--steps", "0", "3"]) == 0
+    rows = [json.loads(x) for x in capsys.readouterr().out.splitlines()]
+    assert [r["it"] for r in rows] == [0, 3]
+    assert all(0 < r["kept_share"] <= 1 and r["gaussians"] > 0 for r in rows)
