@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # One-command set-up and run. Creates ./.venv on first use, installs PyTorch and the project in
 # editable mode (the test extras only for `test`), then:
-#   ./run.sh demo      the main job on the embedded default scene (~10 min on 2 cores)
+#   ./run.sh demo      the main job on the embedded default scene (~15 min on 2 cores)
 #   ./run.sh test      the test suite
 #   ./run.sh pgs ARGS  any pgs command inside the environment
 #
