@@ -43,6 +43,9 @@ POSITION_CODINGS = ("raw16", "sorted")
 MASK_CODINGS = ("bernoulli", "patterns")
 GRID_CODINGS = ("all", "used")
 WEIGHT_DTYPES = ("float32", "float16")
+# what a header without the field means (the encoder writes a coding only when it is not this)
+CODING_DEFAULTS = {"weight_dtype": "float32", "position_coding": "raw16",
+                   "mask_coding": "bernoulli", "grid_coding": "all"}
 
 
 BINDING_FIELDS = ("file_version", "file_id", "section_digests")   # added by digest_sections
@@ -236,10 +239,9 @@ def check_header(header: dict, sections: dict, file_size: int,
         if "grid" in st:
             grid_entries += check_grid_options(st["grid"], f"module_state.{name}.grid")
     grid_entries += _check_entropy(header.get("entropy"), attrs, k)
-    wd = _str(header.get("weight_dtype", "float32"), "weight_dtype", WEIGHT_DTYPES)
-    pc = _str(header.get("position_coding", "raw16"), "position_coding", POSITION_CODINGS)
-    mc = _str(header.get("mask_coding", "bernoulli"), "mask_coding", MASK_CODINGS)
-    gc = _str(header.get("grid_coding", "all"), "grid_coding", GRID_CODINGS)
+    wd, pc, mc, gc = (_str(header.get(f, CODING_DEFAULTS[f]), f, allowed) for f, allowed in (
+        ("weight_dtype", WEIGHT_DTYPES), ("position_coding", POSITION_CODINGS),
+        ("mask_coding", MASK_CODINGS), ("grid_coding", GRID_CODINGS)))
     if "scene" in header and header["scene"] is not None:
         _str(header["scene"], "scene")
     if "view_center" in header:

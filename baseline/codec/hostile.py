@@ -35,6 +35,7 @@ from pathlib import Path
 from typing import Optional
 
 from baseline.codec.container import _parse, build_container
+from baseline.codec.header import CODING_DEFAULTS
 
 
 @dataclass
@@ -117,8 +118,6 @@ CODING_EDITS = [("position_coding", "sorted"), ("position_coding", "raw16"),
                 ("mask_coding", "patterns"), ("mask_coding", "bernoulli"),
                 ("grid_coding", "used"), ("grid_coding", "all"),
                 ("weight_dtype", "float16"), ("weight_dtype", "float32")]
-CODING_DEFAULTS = {"position_coding": "raw16", "mask_coding": "bernoulli", "grid_coding": "all",
-                   "weight_dtype": "float32"}
 # fields the sections do not read: edited without re-signing, the file's id no longer matches
 ID_ONLY_EDITS = [("scene", "/somewhere/else"), ("scene", None), ("view_center", [1.0, 2.0, 3.0]),
                  ("config.model.voxel_size", 0.5), ("config.entropy.mask_threshold", 0.02),

@@ -36,7 +36,7 @@ import torch
 import torch.nn as nn
 
 from baseline.codec.container import BitstreamError, read_container, read_file_bytes, write_container
-from baseline.codec.header import check_header, digest_sections
+from baseline.codec.header import CODING_DEFAULTS, check_header, digest_sections
 from baseline.codec.masks import decode_mask_patterns, encode_mask_patterns, mask_pattern_counts
 from baseline.codec.positions import decode_positions, encode_positions
 from baseline.codec.rangecoder import (anchor_bounds, bernoulli_counts, decode_bernoulli,
@@ -442,8 +442,9 @@ def file_info(path: str | Path) -> dict:
     info = {"total_bytes": total, "sections": rows, "groups": groups,
             "n_anchors": header.get("n_anchors"),
             "header": {k: header[k] for k in ("n_anchors", "n_offsets", "weight_dtype") if k in header}}
-    info["header"]["position_coding"] = header.get("position_coding", "raw16")
-    info["header"]["mask_coding"] = header.get("mask_coding", "bernoulli")
+    info["header"]["position_coding"] = header.get("position_coding",
+                                                   CODING_DEFAULTS["position_coding"])
+    info["header"]["mask_coding"] = header.get("mask_coding", CODING_DEFAULTS["mask_coding"])
     info["header"]["grid_coding"] = header.get("grid_coding", "all")
     on = None
     if "masks" in sections:              # how many neural Gaussians the decoder keeps
