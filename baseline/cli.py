@@ -561,9 +561,10 @@ def main(argv=None) -> int:
                    help="allow the output to replace a run's record file (never a scene's)")
     p.add_argument("--weights", choices=["float32", "float16"], default=None,
                    help="network weight precision in the file (default: the run's codec.weight_dtype)")
-    p.add_argument("--positions", choices=["raw16", "sorted"], default=None,
-                   help="anchor positions: raw 16-bit (HAC) or coded losslessly as a set "
-                        "(default: the run's codec.positions)")
+    p.add_argument("--positions", choices=["raw16", "sorted", "lattice"], default=None,
+                   help="anchor positions: raw 16-bit (HAC), the same coded losslessly as a set "
+                        "(sorted), or the exact voxel-lattice coordinates octree-coded (lattice, "
+                        "HAC++'s kind of coding) (default: the run's codec.positions)")
     p.add_argument("--masks", choices=["bernoulli", "patterns"], default=None,
                    help="Gaussian masks: one global probability (HAC) or per-anchor patterns "
                         "(default: the run's codec.masks)")

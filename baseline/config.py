@@ -171,7 +171,7 @@ class EntropyConfig:
     grid: GridConfig = field(default_factory=GridConfig)
 
 
-POSITION_CODINGS = ("raw16", "sorted")
+POSITION_CODINGS = ("raw16", "sorted", "lattice")
 MASK_CODINGS = ("bernoulli", "patterns")
 GRID_CODINGS = ("all", "used")
 
@@ -180,7 +180,8 @@ GRID_CODINGS = ("all", "used")
 class CodecConfig:
     weight_dtype: str = "float32"        # float32 | float16
     # anchor positions in the file: raw16 (HAC's and the paper's 48 bits per anchor) | sorted
-    # (the same 16-bit values coded losslessly as a set: baseline/codec/positions.py)
+    # (the same 16-bit values coded losslessly as a set: baseline/codec/positions.py) | lattice
+    # (the integer voxel coordinates, octree-coded, decoded bit for bit: baseline/codec/lattice.py)
     positions: str = "raw16"
     # Gaussian masks: bernoulli (HAC's: one global probability) | patterns (each anchor's K bits
     # as one symbol, the file's own histogram: baseline/codec/masks.py)

@@ -35,8 +35,9 @@ class ViewResult:
     valid_share: float = 1.0
 
 
-def quantized_positions(xyz: torch.Tensor, coded: torch.Tensor) -> torch.Tensor:
-    """[N,3] positions after the codec's 16-bit quantization (HAC's widened anchor bounds).
+def quantized_positions(xyz: torch.Tensor, coded: torch.Tensor, coding: str = "raw16") -> torch.Tensor:
+    """[N,3] positions after the codec's 16-bit quantization (HAC's widened anchor bounds);
+    ``coding`` "lattice" stores them exactly (the voxel-lattice coordinates): unchanged.
 
     ``coded`` [N] bool, required (no all-anchors default: that was the bug): the anchors the
     encoder writes (``model.anchor_valid()``); the bounds come from those alone, as in the file,
@@ -47,6 +48,8 @@ def quantized_positions(xyz: torch.Tensor, coded: torch.Tensor) -> torch.Tensor:
     """
     from baseline.codec.rangecoder import anchor_bounds, dequantize_positions, quantize_positions
 
+    if coding == "lattice":
+        return xyz.detach().clone()
     x = xyz.detach().cpu()
     lo, hi = anchor_bounds(x[coded.cpu()].numpy())
     q = quantize_positions(x.numpy(), lo, hi)
@@ -66,11 +69,12 @@ class CodedState:
 
 
 @torch.no_grad()
-def coded_state(model, entropy) -> CodedState:
-    """The :class:`CodedState` of ``model`` in HAC's adaptive phase."""
+def coded_state(model, entropy, positions: str = "raw16") -> CodedState:
+    """The :class:`CodedState` of ``model`` in HAC's adaptive phase (``positions``: the codec's
+    position coding, ``codec.positions``)."""
     valid = model.anchor_valid()
     index = valid.nonzero()[:, 0]
-    xyz = quantized_positions(model.xyz, valid)[index]
+    xyz = quantized_positions(model.xyz, valid, positions)[index]
     hard = (model.gaussian_mask(index).detach() > 0).float()
     values = entropy.quantize_for_coding(xyz, model.coded_values(index), hard)
     return CodedState(index=index, xyz=xyz, values=values)

@@ -121,7 +121,7 @@ def coded_state(trainer: Trainer):
         return None
     from baseline.pipeline import coded_state as _coded
 
-    return _coded(trainer.model, trainer.entropy)
+    return _coded(trainer.model, trainer.entropy, trainer.cfg.codec.positions)
 
 
 def evaluate_trainer(trainer: Trainer, scene, render_dir: Optional[Path] = None, lpips_fn=None) -> dict:

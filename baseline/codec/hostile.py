@@ -115,6 +115,7 @@ HEADER_EDITS = [
 ]
 # codings the header declares for a section: another value re-signed contradicts the payload
 CODING_EDITS = [("position_coding", "sorted"), ("position_coding", "raw16"),
+                ("position_coding", "lattice"),
                 ("mask_coding", "patterns"), ("mask_coding", "bernoulli"),
                 ("grid_coding", "used"), ("grid_coding", "all"),
                 ("weight_dtype", "float16"), ("weight_dtype", "float32")]

@@ -4,7 +4,9 @@ Sections (each with length + CRC32 in the container, DESIGN.md "Bitstream"):
     positions            anchor positions, 16-bit (HAC's widened bounds in the header): raw
                          uint16 [N,3] (codec.positions = "raw16", HAC's layout) or coded as a
                          set ("sorted", baseline/codec/positions.py; the anchors of every other
-                         section then follow the positions' Morton order)
+                         section then follow the positions' Morton order); or the exact
+                         voxel-lattice coordinates, octree-coded with the voxel size ("lattice",
+                         baseline/codec/lattice.py; the anchors follow the octree's leaf order)
     masks                Gaussian masks [N,K]: Bernoulli-coded with one global p
                          (codec.masks = "bernoulli", HAC's) or each anchor's K bits as one
                          symbol ("patterns", baseline/codec/masks.py)
@@ -38,6 +40,8 @@ import torch.nn as nn
 from baseline.codec.container import BitstreamError, read_container, read_file_bytes, write_container
 from baseline.codec.header import CODING_DEFAULTS, check_header, digest_sections
 from baseline.codec.masks import decode_mask_patterns, encode_mask_patterns, mask_pattern_counts
+from baseline.codec.lattice import (decode_lattice, encode_lattice, lattice_coordinates,
+                                    lattice_positions)
 from baseline.codec.positions import decode_positions, encode_positions
 from baseline.codec.rangecoder import (anchor_bounds, bernoulli_counts, decode_bernoulli,
                                        dequantize_positions, encode_bernoulli, pack_positions,
@@ -146,11 +150,20 @@ def encode_model(cfg, model, entropy, path: str | Path, extra_header: Optional[d
         pos_blob, order = encode_positions(q)
         order_t = torch.from_numpy(order).to(idx.device)
         idx, q = idx[order_t], q[order]
+        xyz_q = torch.from_numpy(dequantize_positions(q, lo, hi))
     elif coding == "raw16":
         pos_blob = pack_positions(q)
+        xyz_q = torch.from_numpy(dequantize_positions(q, lo, hi))
+    elif coding == "lattice":     # exact positions; the anchors follow the octree's order
+        if not model.voxel_size:
+            raise ValueError("codec.positions 'lattice' needs the model's voxel size "
+                             "(model.voxel_size is not set)")
+        k = lattice_coordinates(xyz.cpu().numpy(), model.voxel_size)
+        pos_blob, order = encode_lattice(k, model.voxel_size)
+        idx = idx[torch.from_numpy(order).to(idx.device)]
+        xyz_q = torch.from_numpy(lattice_positions(k[order], model.voxel_size))
     else:
         raise ValueError(f"codec.positions: unknown coding {coding!r}")
-    xyz_q = torch.from_numpy(dequantize_positions(q, lo, hi))
     gmask = (torch.sigmoid(model.per_anchor["mask"].detach()[idx][..., 0]) > model.mask_threshold)
     mask_coding = cfg.codec.masks
     if mask_coding == "patterns":
@@ -301,11 +314,16 @@ def _decode_model(path, max_bytes) -> DecodedModel:
         raise BitstreamError(f"header field 'config.model': {e.args[0] if e.args else e} "
                              f"(is the plugin that wrote this file installed?)") from None
     coding = facts.position_coding
-    if coding == "sorted":
-        q = decode_positions(sections["positions"], N)
+    voxel = None
+    if coding == "lattice":
+        k, voxel = decode_lattice(sections["positions"], N)
+        xyz = torch.from_numpy(lattice_positions(k, voxel))
     else:
-        q = unpack_positions(sections["positions"], N)
-    xyz = torch.from_numpy(dequantize_positions(q, lo, hi))
+        if coding == "sorted":
+            q = decode_positions(sections["positions"], N)
+        else:
+            q = unpack_positions(sections["positions"], N)
+        xyz = torch.from_numpy(dequantize_positions(q, lo, hi))
     if facts.mask_coding == "patterns":
         gm = decode_mask_patterns(sections["masks"], N, K)
     else:
@@ -318,6 +336,7 @@ def _decode_model(path, max_bytes) -> DecodedModel:
                             mask_threshold=cfg.entropy.mask_threshold)
     except (ValueError, TypeError, KeyError) as e:
         raise BitstreamError(f"header field 'module_state' does not fit the modules: {e}") from None
+    model.voxel_size = voxel
     attrs = [a["name"] for a in facts.attrs]
     want = [(a.name, a.dims, a.masked) for a in model.coded_attributes()]
     if want != [(a["name"], a["dims"], a["masked"]) for a in facts.attrs]:

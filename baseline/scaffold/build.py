@@ -25,6 +25,7 @@ def build_model(cfg: Config, points: torch.Tensor) -> tuple[AnchorModel, float]:
         provider_factory=lambda m: prov_cls(m, cfg),
         refiner_factory=(lambda m: ref_cls(m, cfg)) if ref_cls else None,
         mask_threshold=cfg.entropy.mask_threshold)
+    model.voxel_size = float(v)
     return model, v
 
 

@@ -74,7 +74,8 @@ def grow_anchors(model, grads: torch.Tensor, eligible: torch.Tensor, cfg, voxel_
         keep_p = 0.5 ** (level + 1)
         u = (rand(N0 * K) if rand is not None else uniform(N0 * K, generator, grads.device)).to(grads.device)
         cand = cand & (u > keep_p)
-        size = voxel_size * (m.update_init_factor // (m.update_hierarchy_factor ** level))
+        factor = m.update_init_factor // (m.update_hierarchy_factor ** level)
+        size = voxel_size * factor
         if size <= 0:
             continue
         n_new = 0
@@ -93,7 +94,9 @@ def grow_anchors(model, grads: torch.Tensor, eligible: torch.Tensor, cfg, voxel_
                 new_inv = remap[inverse]
                 ok = new_inv >= 0
                 parent = sel[ok] // K
-                new_xyz = (uniq[free].double() * size).float()
+                # on the voxel lattice, the expression of anchors.voxelize and of the lattice
+                # position coder (the same bits as uniq * size for power-of-two factors)
+                new_xyz = ((uniq[free] * factor).double() * voxel_size).float()
                 n_new = len(new_xyz)
                 new_scaling = torch.full((n_new, 6), float(torch.log(torch.tensor(size))),
                                          device=new_xyz.device)

@@ -133,6 +133,9 @@ class AnchorModel(nn.Module):
         # (HAC++) instead of the opacity before it (HAC); set by the mask-training strategy
         self.mask_after_selection = False
         self.baked = None           # BakedDecoder of a decoded model (bake()), used to render
+        # the voxel lattice the anchors sit on (set by build_model, a checkpoint's restore or the
+        # lattice position decoder; the lattice position coder needs it)
+        self.voxel_size: Optional[float] = None
         self.per_anchor = nn.ParameterDict()
         self.grow_rules: dict[str, Optional[GrowRule]] = {}
         self.add_per_anchor("xyz", xyz.float().clone(), None, trainable=False)

@@ -426,6 +426,7 @@ class Trainer:
         self.phase = s["phase"]
         self.render_scale = s["render_scale"]
         self.voxel_size = s["voxel_size"]
+        self.model.voxel_size = float(self.voxel_size)
         self._view_order = list(s["view_order"])
         for h in self.hooks:
             if hasattr(h, "restore"):
