@@ -465,6 +465,11 @@ def file_info(path: str | Path) -> dict:
                                                    CODING_DEFAULTS["position_coding"])
     info["header"]["mask_coding"] = header.get("mask_coding", CODING_DEFAULTS["mask_coding"])
     info["header"]["grid_coding"] = header.get("grid_coding", "all")
+    n_anchors = header.get("n_anchors")
+    if "positions" in sections and isinstance(n_anchors, int) and n_anchors > 0:
+        info["positions"] = {"coding": info["header"]["position_coding"],
+                             "bytes": len(sections["positions"]),
+                             "bits_per_anchor": 8 * len(sections["positions"]) / n_anchors}
     on = None
     if "masks" in sections:              # how many neural Gaussians the decoder keeps
         counter = (mask_pattern_counts if header.get("mask_coding") == "patterns"
@@ -518,6 +523,11 @@ def format_info(info: dict) -> str:
     for g, b in sorted(info["groups"].items(), key=lambda kv: -kv[1]):
         lines.append(f"{g:<38}{b:>12}{b / mb:>10.4f}{100 * b / tot:>7.1f}%")
     lines.append(f"{'total (file size)':<38}{tot:>12}{tot / mb:>10.4f}")
+    pos = info.get("positions")
+    if pos:
+        lines.append("")
+        lines.append(f"anchor positions ({pos['coding']}): {pos['bits_per_anchor']:.2f} bits per "
+                     f"anchor")
     m = info.get("masks_on")
     if m:
         lines.append("")
