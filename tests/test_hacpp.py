@@ -165,7 +165,8 @@ def hacpp_files(small_scene, tmp_path_factory):
     from baseline.codec.model_codec import encode_model
     d = tmp_path_factory.mktemp("hacpp")
     out = {}
-    for name, patches in (("hac", ["entropy-hacpp"]), ("pgs", ["predict-gs", "entropy-hacpp"])):
+    # the hacpp composition: entropy model, mask training and lattice positions
+    for name, patches in (("hac", ["hacpp"]), ("pgs", ["predict-gs", "hacpp"])):
         t = _train(small_scene, d / name, patches)
         st = encode_model(t.cfg, t.model, t.entropy, d / f"{name}.pgs",
                           extra_header={"scene": str(small_scene)})
@@ -181,6 +182,8 @@ def test_hac_and_predict_gs_round_trip_with_hacpp(hacpp_files, name):
     assert t.entropy.main == ("feat" if name == "hac" else "residual")
     dec = decode_model(path)
     assert dec.entropy.kind == "hacpp"
+    assert t.cfg.entropy.mask_training == "hacpp" and dec.header["position_coding"] == "lattice"
+    assert torch.equal(dec.model.xyz, t.model.xyz.detach()[st["index"]])   # positions exact
     for k, v in st["values"].items():
         assert torch.equal(v, dec.model.fixed_values[k]), k
     labels = {r["section"]: r["label"] for r in file_info(path)["sections"]}
