@@ -381,3 +381,29 @@ def test_exact_kernel_bit_identical_to_torch_path(small_grid, layout):
         H.set_grid_backend(old)
     assert torch.equal(got.view(torch.int64), ref.view(torch.int64))   # bits, signs of zero too
     assert (got != 0).any()
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_fused_table_bits_equal_the_unfused_form_bit_for_bit(seed):
+    """hash_bits counts the ones instead of summing the binarized, concatenated tables: its
+    value and its gradient on every table entry are the unfused form's, bit for bit (a change
+    would change every training's numbers)."""
+    from baseline.hac.hashgrid import table_bits
+
+    g = torch.Generator().manual_seed(seed)
+    sizes = [(4096, 4), (1000, 2), (37, 4)]
+    scale = [1e-4, 0.7, 3.0][seed]                     # HAC's init range, mid-training, saturated
+    base = [torch.randn(s, generator=g) * scale for s in sizes]
+    if seed == 2:
+        base[0][0, :] = torch.tensor([0.0, -0.0, 1.0, -1.0])
+        base[0][1, 0] = float("nan")
+    w = torch.randn((), generator=g)
+    a = [t.clone().requires_grad_(True) for t in base]
+    ref = binary_entropy_bits(torch.cat([binarize(t).reshape(-1) for t in a]))
+    (ref * w).backward()
+    b = [t.clone().requires_grad_(True) for t in base]
+    got = table_bits(b)
+    (got * w).backward()
+    assert torch.equal(got.detach(), ref.detach())
+    for x, y in zip(a, b):
+        assert torch.equal(x.grad, y.grad)

@@ -94,10 +94,53 @@ def binary_entropy_bits(binary: torch.Tensor) -> torch.Tensor:
     """
     b = (binary.reshape(-1) + 1) / 2
     n = b.numel()
-    n1 = b.sum()
+    return _bits_of_count(b.sum(), n)
+
+
+def _bits_of_count(n1: torch.Tensor, n: int) -> torch.Tensor:
+    """The scalar part of :func:`binary_entropy_bits` (``n1``: the count of ones, float)."""
     n0 = n - n1
     p = (n1 / max(n, 1)).clamp(1e-6, 1 - 1e-6)
     return -n1 * torch.log2(p) - n0 * torch.log2(1 - p) + 32
+
+
+# Below this many entries a float32 sum of 0/1 values is exact in any order, so a count gives
+# the same n1 as the sum of the binarized tables.
+_EXACT_COUNT = 1 << 24
+
+
+class _TableBits(torch.autograd.Function):
+    """``binary_entropy_bits(cat(binarize(t) for t in tables))`` without materializing the
+    binarized tables, their concatenation or the elementwise chain (and its backward) over every
+    entry: the bits depend on the tables only through the count of ones, so the forward counts
+    (``x >= 0``) and the backward gives every entry ``d bits / d n1 / 2`` where the STE passes
+    (``|x| <= 1``). Bit for bit the values and gradients of the unfused form (the scalar part is
+    the same ops, differentiated by autograd; ``tests/test_hac_hashgrid.py``)."""
+
+    @staticmethod
+    def forward(ctx, *tables):
+        n = sum(t.numel() for t in tables)
+        count = sum(int((t >= 0).sum()) for t in tables)
+        n1 = torch.tensor(float(count), dtype=tables[0].dtype, device=tables[0].device)
+        ctx.save_for_backward(*tables)
+        ctx.n1, ctx.n = n1, n
+        return _bits_of_count(n1, n)
+
+    @staticmethod
+    def backward(ctx, grad):
+        with torch.enable_grad():
+            n1 = ctx.n1.detach().requires_grad_(True)
+            (g_n1,) = torch.autograd.grad(_bits_of_count(n1, ctx.n), n1, grad)
+        g = g_n1 / 2
+        return tuple(torch.where(t.abs() <= 1.0, g, 0.0) for t in ctx.saved_tensors)
+
+
+def table_bits(tables) -> torch.Tensor:
+    """:func:`binary_entropy_bits` of the binarized ``tables`` (float parameters), fused."""
+    tables = list(tables)
+    if sum(t.numel() for t in tables) > _EXACT_COUNT:     # a float32 sum may round: unfused
+        return binary_entropy_bits(torch.cat([binarize(t).reshape(-1) for t in tables]))
+    return _TableBits.apply(*tables)
 
 
 class GridLevels(nn.Module):
@@ -490,7 +533,7 @@ class BinaryHashGrid(nn.Module):
 
     def hash_bits(self) -> torch.Tensor:
         """Estimated size in bits of the binarised tables (differentiable via the STE)."""
-        return binary_entropy_bits(torch.cat([t.reshape(-1) for t in self.binary_tables().values()]))
+        return table_bits(g.params for g in self.grids.values())
 
     def binary_values(self) -> np.ndarray:
         """All binary entries as uint8 {0, 1} in the canonical order (grid order, row-major)."""
