@@ -34,12 +34,12 @@ from typing import Tuple
 import numpy as np
 
 from baseline.codec.container import BitstreamError
+from baseline.codec.positions import read_head
 from baseline.codec.rangecoder import _CODER_ERRORS, _bytes_to_words, _call_coder, _require_constriction
 
 TAG = b"L1"
 _HEAD = struct.Struct("<2sIB3qd")   # tag, n anchors, depth, min k (3), voxel size
 MAX_DEPTH = 21                      # bits per axis (the neighbour keys pack 3 x 21 bits)
-MAX_N = 1 << 31
 MAX_ABS_K = 1 << 40                 # |min k|: positions stay far inside float32's range
 CHUNK = 1024                        # nodes between probability updates
 _W = 16                             # count weight of one coded bit (and the per-level divisor)
@@ -186,15 +186,7 @@ def encode_lattice(k, voxel_size: float) -> Tuple[bytes, np.ndarray]:
 def decode_lattice(blob, n: int, what: str = "section 'positions'") -> Tuple[np.ndarray, float]:
     """Inverse of :func:`encode_lattice`: ``(k int64 [N,3] in the coded order, voxel size)``."""
     buf = bytes(blob)
-    if len(buf) < _HEAD.size:
-        raise BitstreamError(f"{what}: truncated header ({len(buf)} bytes)")
-    tag, n_file, depth, kx, ky, kz, v = _HEAD.unpack_from(buf)
-    if tag != TAG:
-        raise BitstreamError(f"{what}: not a lattice-position stream (tag {tag!r})")
-    if n_file != n:
-        raise BitstreamError(f"{what}: holds {n_file} anchors, the header says {n}")
-    if n > MAX_N:
-        raise BitstreamError(f"{what}: absurd anchor count {n}")
+    _, _, depth, kx, ky, kz, v = read_head(buf, _HEAD, TAG, n, what, "lattice-position")
     if not 1 <= depth <= MAX_DEPTH:
         raise BitstreamError(f"{what}: octree depth {depth} outside [1, {MAX_DEPTH}]")
     kmin = np.array([kx, ky, kz], np.int64)

@@ -184,18 +184,25 @@ def encode_positions(q) -> Tuple[bytes, np.ndarray]:
     return b"".join(parts), order
 
 
+def read_head(buf: bytes, head: struct.Struct, tag: bytes, n: int, what: str, kind: str) -> tuple:
+    """The fields of a position stream's head (``tag``, anchor count, then its own), checked:
+    length, tag, the count against the file header's ``n`` and :data:`MAX_N`."""
+    if len(buf) < head.size:
+        raise BitstreamError(f"{what}: truncated header ({len(buf)} bytes)")
+    fields = head.unpack_from(buf)
+    if fields[0] != tag:
+        raise BitstreamError(f"{what}: not a {kind} stream (tag {fields[0]!r})")
+    if fields[1] != n:
+        raise BitstreamError(f"{what}: holds {fields[1]} anchors, the header says {n}")
+    if n > MAX_N:
+        raise BitstreamError(f"{what}: absurd anchor count {n}")
+    return fields
+
+
 def decode_positions(blob, n: int, what: str = "section 'positions'") -> np.ndarray:
     """Inverse of :func:`encode_positions`: uint16 [N, 3] in the coded (sorted) order."""
     buf = bytes(blob)
-    if len(buf) < _HEAD.size:
-        raise BitstreamError(f"{what}: truncated header ({len(buf)} bytes)")
-    tag, n_file = _HEAD.unpack_from(buf)
-    if tag != TAG:
-        raise BitstreamError(f"{what}: not a sorted-position stream (tag {tag!r})")
-    if n_file != n:
-        raise BitstreamError(f"{what}: holds {n_file} anchors, the header says {n}")
-    if n > MAX_N:
-        raise BitstreamError(f"{what}: absurd anchor count {n}")
+    read_head(buf, _HEAD, TAG, n, what, "sorted-position")
     pos = _HEAD.size
     dicts = []
     for a in "xyz":
