@@ -42,3 +42,29 @@ def test_hostile_files_are_refused_cleanly(decoded_files, tmp_path):
     assert not st["findings"], "\n".join(f"{n}: {f}" for n, f in st["findings"][:30])
     assert st["decoded"] == sum(not c.must_fail for c in cases)
     assert st["refused"] == sum(c.must_fail for c in cases)
+
+
+def test_hostile_lattice_position_files_are_refused_cleanly(decoded_files, tmp_path):
+    """A file with lattice positions (HAC++'s kind of coding): its octree stream's head edited
+    (depth, origin, voxel size), its payload replaced (dense all-ones claims, zeros, none) and
+    the file truncated or flipped: refused cleanly, never a crash or a blow-up."""
+    import dataclasses
+    import json
+
+    from baseline.codec.model_codec import encode_model
+    from baseline.run import load_run
+
+    run = decoded_files["baseline"]
+    if not (run / "scene.json").exists():
+        (run / "scene.json").write_text(json.dumps({"path": str(decoded_files["scene"])}))
+    t, _ = load_run(run, device="cpu")
+    cfg = dataclasses.replace(t.cfg, codec=dataclasses.replace(t.cfg.codec, positions="lattice"))
+    encode_model(cfg, t.model, t.entropy, tmp_path / "lattice.pgs",
+                 extra_header={"scene": str(decoded_files["scene"])})
+    files = {"lattice": (tmp_path / "lattice.pgs").read_bytes()}
+    cases = [c for c in crafted_cases(files, n_random=20, seed=1)
+             if "positions" in c.name or "truncated" in c.name or "flipped" in c.name]
+    assert sum("positions:" in c.name for c in cases) >= 15
+    st = run_cases(cases, cap_mb=1024, timeout=120.0)
+    assert not st["findings"], "\n".join(f"{n}: {f}" for n, f in st["findings"][:30])
+    assert st["refused"] == sum(c.must_fail for c in cases)

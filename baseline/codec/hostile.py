@@ -240,6 +240,19 @@ def _deep_edits(label: str, header: dict, sections: list) -> list:
                                      f"{name}: chunk 0 declares {n} symbols in [{smin}, {smax}]")
         if name.endswith("weights") or name == "em.mlp":
             _weight_edits(with_section, name, p)
+        if name == "positions" and p[:2] == b"L1" and len(p) >= 39:
+            # lattice positions: head fields (tag, n, depth, min k, voxel), then the octree words
+            for depth in (0, 22, 255):
+                with_section(name, p[:6] + bytes([depth]) + p[7:], f"positions: octree depth {depth}")
+            with_section(name, p[:7] + struct.pack("<q", 2 ** 62) + p[15:],
+                         "positions: lattice origin 2^62")
+            for v in (float("nan"), 0.0, -1.0, 1e300):
+                with_section(name, p[:31] + struct.pack("<d", v) + p[39:], f"positions: voxel {v}")
+            for word, what in ((b"\xff\xff\xff\xff", "all ones"), (b"\0\0\0\0", "all zeros")):
+                for n_words in (1, 64, 4096):
+                    with_section(name, p[:39] + word * n_words,
+                                 f"positions: octree payload of {n_words} words, {what}")
+            with_section(name, p[:39], "positions: no octree payload")
         if name == "masks" and p[:1] == b"B":
             for n, n1 in ((2 ** 31, 2 ** 31), (2 ** 40, 0), (10, 20)):
                 with_section(name, struct.pack("<cQQ", b"B", n, n1) + p[17:],
