@@ -386,6 +386,11 @@ class DecodeHarness:
     def run(self, case: Case) -> Optional[str]:
         import shutil
 
+        if not case.must_fail:
+            # A file that must decode is judged in a fresh worker: the cap bounds what one
+            # decode may take, and a long-lived worker's address space carries earlier cases'
+            # (a valid HAC++ file's decode and render hit the cap only after ~2,000 cases).
+            self.close()
         if self.proc is None or self.proc.poll() is not None:
             self._start()
         path = os.path.join(self.dir, "case.pgs")
