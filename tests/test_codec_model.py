@@ -352,7 +352,4 @@ def test_lattice_positions_decode_the_trained_positions(encoded, tmp_path):
     assert raw.model.n_anchors == dec.model.n_anchors
     idx_raw = {int(i): j for j, i in enumerate(encoded["stats"]["index"].tolist())}
     perm = torch.tensor([idx_raw[int(i)] for i in st["index"].tolist()])
-    for k, v in raw.model.fixed_values.items():
-        if k in ("feat", "scaling", "offsets", "residual"):
-            assert v[perm].shape == dec.model.fixed_values[k].shape, k
     assert torch.equal(raw.model.gaussian_mask()[perm], dec.model.gaussian_mask())

@@ -160,7 +160,6 @@ def encode_lattice(k, voxel_size: float) -> Tuple[bytes, np.ndarray]:
         octant = (child[:, 0] & 1) | ((child[:, 1] & 1) << 1) | ((child[:, 2] & 1) << 2)
         occ = np.zeros(int(pfirst.sum()), np.int64)
         np.bitwise_or.at(occ, pidx, 1 << octant)
-        assert np.array_equal(parent[pfirst], nodes)
         model.new_level()
         nb = _contexts(nodes)
         nb6 = nb.sum(1)

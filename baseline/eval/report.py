@@ -58,7 +58,7 @@ def method_label(name: str, common_patches=()) -> str:
     if not parts:
         return base
     # a later patch that is a method of its own is named as one: predict-gs+hacpp -> Predict-GS+HAC++
-    rest = [METHOD_PATCH_LABELS.get(p, p) if p == "hacpp" else p for p in parts[1:]]
+    rest = ["HAC++" if p == "hacpp" else p for p in parts[1:]]
     if parts[0] in METHOD_PATCH_LABELS:
         return "+".join([METHOD_PATCH_LABELS[parts[0]], *rest])
     return "+".join([base, parts[0], *rest])
