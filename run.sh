@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # One-command set-up and run. Creates ./.venv on first use, installs PyTorch and the project in
 # editable mode (the test extras only for `test`), then:
-#   ./run.sh demo      the main job on the embedded default scene (~15 min on 2 cores)
+#   ./run.sh demo      the main job on the embedded default scene (~10 min on 2 cores)
 #   ./run.sh test      the test suite
 #   ./run.sh pgs ARGS  any pgs command inside the environment
 #
@@ -42,6 +42,8 @@ if [ ! -f "$VENV/.installed-$(stamp_for "$extras")" ]; then
   fi
   "$VENV/bin/pip" install -q -e ".$extras"
   "$VENV/bin/python" -c "import torch; print('[run.sh] PyTorch', torch.__version__, '(CUDA ' + (torch.version.cuda or 'none: the CPU build') + ')')"
+  # compile the CPU kernels into numba's disk cache once, here, not in the first training
+  "$VENV/bin/pgs" warmup || echo "[run.sh] kernel warm-up failed: the first training compiles them"
   rm -f "$VENV"/.installed-*
   touch "$VENV/.installed-$(stamp_for "$extras")"
   # the test environment holds everything the demo needs

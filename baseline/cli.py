@@ -396,6 +396,32 @@ def cmd_benchmark(args) -> int:
     return 0 if not res["failed"] else 1
 
 
+def cmd_warmup(args) -> int:
+    """Compile the CPU kernels (rasterizer and hash grids) into numba's disk cache, two
+    processes at once when two cores are free: a first training then starts at once."""
+    import subprocess
+
+    from baseline.train.trainer import available_cores
+
+    t0 = time.perf_counter()
+    parts = {"rasterizer": "from baseline.render.cpu import kernels; kernels()",
+             "hash grids": "from baseline.hac.hashgrid import warm_kernels; warm_kernels()"}
+    procs = {}
+    for name, code in parts.items():
+        if procs and available_cores() < 2:        # one core: one after the other
+            for p in procs.values():
+                p.wait()
+        procs[name] = subprocess.Popen([sys.executable, "-c", code], stderr=subprocess.PIPE,
+                                       text=True)
+    failed = [(n, p.communicate()[1]) for n, p in procs.items() if p.wait() != 0]
+    for name, err in failed:
+        print(f"warmup: compiling the {name} kernels failed:\n{err[-2000:]}", file=sys.stderr)
+    if not failed:
+        print(f"warmup: CPU kernels compiled or loaded from numba's cache in "
+              f"{time.perf_counter() - t0:.0f} s")
+    return 1 if failed else 0
+
+
 DEMO_LAMBDAS = (0.004, 0.002, 0.001)
 DEMO_SCOPE = ("These figures are the embedded synthetic scene's (1k iterations, one seed): a "
               "check that the pipelines run and a picture of the comparison, not a claim about "
@@ -694,6 +720,10 @@ def main(argv=None) -> int:
     p.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
     _config_args(p)
     p.set_defaults(fn=cmd_benchmark)
+
+    p = sub.add_parser("warmup", help="compile the CPU kernels into numba's disk cache (run.sh "
+                       "does it at set-up; otherwise the first training compiles them)")
+    p.set_defaults(fn=cmd_warmup)
 
     p = sub.add_parser("demo", help="the main job: HAC vs Predict-GS on the embedded scene, three "
                        "rate points trained in parallel, a verdict at the end")

@@ -25,7 +25,11 @@ def scene(scene_maker):
 
 
 def _trained(scene, out, patches=()):
-    cfg = demo_cfg(ITERS, patches=patches)
+    # The full grid layouts (HAC's): the demo preset sizes them from the anchors, and at 300
+    # iterations that entropy model is still far from calibrated (17% of the scalings at the
+    # likelihood floor on this scene, under 1% at 1k iterations), which is not what the
+    # rate-estimate checks below are about.
+    cfg = demo_cfg(ITERS, "entropy.grid.auto=false", "predict.grid_auto=false", patches=patches)
     t = Trainer(cfg, scene, out, progress=False)
     t.train()
     assert t.phase == "adaptive"

@@ -675,6 +675,20 @@ class BinaryHashGrid(nn.Module):
                 f"binary={self.n_binary}")
 
 
+def warm_kernels() -> None:
+    """Compile (or load from numba's disk cache) every grid kernel a training and a decode use:
+    the float32 interpolation forward/backward and the float64 exact path, for 3D levels and
+    planes, on a tiny grid. Called by ``pgs warmup`` (the set-up of ``run.sh``) so that a first
+    training does not pay the compile."""
+    if _BACKEND == "torch":
+        return
+    g = BinaryHashGrid(resolutions_3d=(4, 16), log2_table_3d=6, resolutions_2d=(4, 16),
+                       log2_table_2d=6)
+    x = torch.rand(64, 3, generator=torch.Generator().manual_seed(0))
+    g(x).sum().backward()
+    g(x, exact=True)
+
+
 def auto_grid_layout(n_anchors: int, bounds=None, voxel_size: Optional[float] = None, *,
                      resolutions_3d: Sequence[int] = HAC_RESOLUTIONS_3D,
                      resolutions_2d: Sequence[int] = HAC_RESOLUTIONS_2D,
