@@ -337,3 +337,19 @@ def test_a_run_folder_is_owned_by_one_process(tmp_path):
     finally:
         p.kill()
         p.wait()
+
+
+def test_warmup_fills_the_grid_kernel_cache(tmp_path, capsys):
+    """``warm_kernels`` compiles every grid kernel a training and a decode call (index files in
+    a fresh numba cache); ``pgs warmup`` runs both parts and reports success."""
+    import os
+    import subprocess
+    import sys
+
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path))
+    subprocess.run([sys.executable, "-c", "from baseline.hac.hashgrid import warm_kernels; "
+                    "warm_kernels()"], env=env, check=True)
+    names = {p.name.split(".")[1].rsplit("-", 1)[0] for p in tmp_path.rglob("*.nbi")}
+    assert {"grid_fwd", "grid_bwd", "_bwd_range", "grid_fwd_exact"} <= names, names
+    assert main(["warmup"]) == 0                   # the project's own cache: loads, no compile
+    assert "warmup: CPU kernels compiled or loaded" in capsys.readouterr().out

@@ -38,7 +38,8 @@ def test_named_patch_and_include():
     cfg = build_config(["demo"])
     assert cfg.train.rasterizer == "cpu"          # from the included cpu patch
     assert cfg.train.iterations == 1000           # demo overrides cpu
-    assert cfg.patches == ["cpu", "demo"]
+    assert cfg.patches == ["cpu", "grid-auto", "sfp-grid-auto", "demo"]
+    assert cfg.entropy.grid.auto and cfg.ext["predict"].grid_auto   # the demo sizes its grids
 
 
 def test_cpu_preset_scales_milestones():
@@ -117,7 +118,9 @@ def test_hash_of_finished_runs_survives_new_options():
     reused as if trained by the current code."""
     from baseline.config import LATER_KEYS, TRAINING_SEMANTICS
 
-    base = build_config(["cpu", "demo"], ["entropy.lmbda=0.004"])
+    # the demo preset of those runs had the full grid layouts (it sizes them from the anchors now)
+    old = ["entropy.lmbda=0.004", "entropy.grid.auto=false", "predict.grid_auto=false"]
+    base = build_config(["cpu", "demo"], old)
     assert ("lr", "mask_schedule_scaled") in LATER_KEYS
     archived = {p.name.rsplit("-", 1)[1] for p in
                 (Path(__file__).parent.parent / "docs/examples/demo-schedule/1k/runs").iterdir()}
@@ -127,17 +130,17 @@ def test_hash_of_finished_runs_survives_new_options():
         return config_hash(c, semantics=1)
 
     assert h1(base) in archived
-    on = build_config(["cpu", "demo", "masks-lr-scaled"], ["entropy.lmbda=0.004"])
+    on = build_config(["cpu", "demo", "masks-lr-scaled"], old)
     assert on.lr.mask_schedule_scaled and h1(on) not in archived
-    clamp = build_config(["cpu", "demo"], ["entropy.lmbda=0.004", "densify.clamp_scaling_to_end=true"])
+    clamp = build_config(["cpu", "demo"], old + ["densify.clamp_scaling_to_end=true"])
     assert ("densify", "clamp_scaling_to_end") in LATER_KEYS and h1(clamp) not in archived
-    ste = build_config(["cpu", "demo", "quant-ste"], ["entropy.lmbda=0.004"])
+    ste = build_config(["cpu", "demo", "quant-ste"], old)
     assert ("entropy", "decoder_quant") in LATER_KEYS and ste.entropy.decoder_quant == "ste"
     assert h1(ste) not in archived
-    srt = build_config(["cpu", "demo", "positions-sorted"], ["entropy.lmbda=0.004"])
+    srt = build_config(["cpu", "demo", "positions-sorted"], old)
     assert ("codec", "positions") in LATER_KEYS and srt.codec.positions == "sorted"
     assert h1(srt) not in archived
-    cc = build_config(["cpu", "demo", "compact-codec"], ["entropy.lmbda=0.004"])
+    cc = build_config(["cpu", "demo", "compact-codec"], old)
     assert ("codec", "masks") in LATER_KEYS and cc.codec.masks == "patterns"
     assert cc.codec.positions == "sorted" and h1(cc) not in archived
     assert ("codec", "grids") in LATER_KEYS and cc.codec.grids == "used"
