@@ -139,7 +139,7 @@ def _scaled_png(path: Path, values: np.ndarray, vmax: float, cmap: str, label: s
     im = ax.imshow(values, cmap=cmap, vmin=0, vmax=vmax, interpolation="nearest")
     fig.colorbar(im, ax=ax, shrink=0.9, label=label)
     with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png")
+        fig.savefig(tmp, format="png", bbox_inches="tight", pad_inches=0.05)
 
 
 def _draw(path: Path, gt, rows, evmax: float, bvmax: float, title: str) -> None:
