@@ -406,14 +406,19 @@ def cmd_warmup(args) -> int:
     t0 = time.perf_counter()
     parts = {"rasterizer": "from baseline.render.cpu import kernels; kernels()",
              "hash grids": "from baseline.hac.hashgrid import warm_kernels; warm_kernels()"}
-    procs = {}
-    for name, code in parts.items():
-        if procs and available_cores() < 2:        # one core: one after the other
-            for p in procs.values():
-                p.wait()
-        procs[name] = subprocess.Popen([sys.executable, "-c", code], stderr=subprocess.PIPE,
-                                       text=True)
-    failed = [(n, p.communicate()[1]) for n, p in procs.items() if p.wait() != 0]
+
+    def start(code):
+        return subprocess.Popen([sys.executable, "-c", code], stderr=subprocess.PIPE, text=True)
+
+    if available_cores() >= 2:                         # both at once
+        procs = {name: start(code) for name, code in parts.items()}
+        errs = {name: p.communicate()[1] for name, p in procs.items()}
+    else:                                              # one core: one after the other
+        procs, errs = {}, {}
+        for name, code in parts.items():
+            procs[name] = start(code)
+            errs[name] = procs[name].communicate()[1]
+    failed = [(n, errs[n]) for n, p in procs.items() if p.returncode != 0]
     for name, err in failed:
         print(f"warmup: compiling the {name} kernels failed:\n{err[-2000:]}", file=sys.stderr)
     if not failed:
