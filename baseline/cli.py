@@ -145,6 +145,13 @@ def cmd_census(args) -> int:
     return 0
 
 
+def cmd_curves(args) -> int:
+    from baseline.eval.curves import format_curves
+
+    print(format_curves(args.runs, windows=args.windows))
+    return 0
+
+
 def cmd_render(args) -> int:
     from baseline.run import Renderable
 
@@ -568,6 +575,13 @@ def main(argv=None) -> int:
     p.add_argument("--json", default=None, help="also write the figures to this JSON file")
     p.add_argument("--device", default=None, help=DEVICE_HELP)
     p.set_defaults(fn=cmd_census)
+
+    p = sub.add_parser("curves", help="where in its schedule a run falls behind another: mean "
+                       "training L1 per span of the schedule and the rate's bits per anchor, "
+                       "from the runs' training logs")
+    p.add_argument("runs", nargs="+", help="run folders; from the second on, changes vs the first")
+    p.add_argument("--windows", type=int, default=6, help="equal spans of the schedule (default 6)")
+    p.set_defaults(fn=cmd_curves)
 
     p = sub.add_parser("quant-cost", help="PSNR of a trained run with each coded attribute raw, "
                        "rounded (as coded) or noised (as HAC trains): where its quantization loss comes from")

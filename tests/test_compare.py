@@ -253,6 +253,10 @@ def test_archived_records_are_reported_without_retraining(scene, tmp_path):
     kw = dict(common_patches=["demo"], sets=SETS, progress=False, plots=False, echo=False)
     first = run_compare(scene, out, vs=["entropy-factorized"], only=["baseline"], **kw)
     base = first["runs"][0]
+    curve = base["train_curve"]         # the training log's summary, kept in the record
+    assert curve["iterations"] == base["iterations"] and len(curve["l1"]) == 6
+    # log_every 1000 > ITERS: only the last step is logged, so only the last span has a value
+    assert curve["l1"][:-1] == [None] * 5 and curve["l1"][-1] > 0
     # archive: keep the records only, in a new comparison folder
     arch = tmp_path / "archive"
     # another comparison's finished run sharing the folder: kept only when nothing says which
@@ -280,6 +284,7 @@ def test_archived_records_are_reported_without_retraining(scene, tmp_path):
     rows = {r["method"]: r for r in full["runs"]}
     assert rows[BASELINE]["stages_run"] == [] and rows[BASELINE]["records_only"]
     assert (rows[BASELINE]["bytes"], rows[BASELINE]["psnr"]) == (base["bytes"], base["psnr"])
+    assert rows[BASELINE]["train_curve"] == curve     # the archived records keep it, not the log
     assert rows["entropy-factorized"]["stages_run"] == ["train", "encode", "decode+eval", "census"]
     assert not rows["entropy-factorized"]["records_only"]
     assert "archived records" in format_report(full) and full["complete"] and full["missing"] == []

@@ -505,6 +505,13 @@ def _run_stages(spec, scene_path, lpips_fn, lpips, progress, stage, remeasure, c
         stage("census")
         _stage_census(spec, record)
         done.append("census")
+    if "train_curve" not in record and not records_only(spec):
+        from baseline.eval.curves import train_curve
+
+        curve = train_curve(spec.dir, res.get("iterations"))
+        if curve is not None:           # derived from the training log; nothing is measured
+            record["train_curve"] = curve
+            _write_record(spec, record)
     row = make_row(spec, res, record)
     row["stages_run"] = done
     return row
@@ -552,6 +559,8 @@ def make_row(spec: RunSpec, res: dict, record: dict) -> dict:
         "records_only": records_only(spec),
         # the Gaussian census (absent from records written before it was kept)
         "census": record.get("census"),
+        # the training curve's summary (baseline.eval.curves; absent from older records)
+        "train_curve": record.get("train_curve"),
     }
 
 

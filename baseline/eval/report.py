@@ -502,6 +502,37 @@ def census_table(results: dict) -> Optional[Table]:
                  rows, notes, left=2)
 
 
+def curve_table(results: dict) -> Optional[Table]:
+    """Where in the schedule a method falls behind (:mod:`baseline.eval.curves`): each run's
+    mean training L1 per span of its schedule (six equal spans), and the sampled bits per anchor
+    of the rate term in the last span, with the change vs the baseline's run at the same rate
+    point and seed. None when no run kept its curve (records archived before it was kept)."""
+    from baseline.eval.curves import curve_cells, span_headers
+
+    runs = [r for r in ordered_runs(results) if r.get("train_curve")]
+    if not runs:
+        return None
+    curves = [r["train_curve"] for r in runs]
+    n = len(curves[0]["l1"])
+    rows = []
+    for r, c in zip(runs, curves):
+        p = None if _is_base(results, r) else baseline_partner(results, r)
+        pc = p.get("train_curve") if p else None
+        rows.append([label(results, r["method"]), _lam(r)]
+                    + curve_cells(c, rate_elements(r), pc, rate_elements(p) if pc else None))
+    notes = [f"From each run's training log: the mean L1 of the sampled training views over "
+             f"each of {n} equal spans of the schedule, and the rate term's sampled bits per "
+             "anchor (bits per coded value x coded values per anchor) over the last span; in "
+             "brackets the change vs the baseline's run at the same rate point and seed (read a "
+             "change against the spread between one method's seeds)."]
+    if any("predict-gs" in r.get("method_patches", ()) for r in runs):
+        notes[0] += (" Predict-GS's progressive training renders downsampled views for the "
+                     "first 30% of the schedule: its L1 there is on smaller images.")
+    notes += _not_shown(results, lambda r: bool(r.get("train_curve")), "the training curve was")
+    return Table("Training curves", ["method", "lambda"] + span_headers(curves)
+                 + ["bits/anchor, last span"], rows, notes, left=2)
+
+
 def reference_table(results: dict) -> Optional[Table]:
     """Every run against the uncompressed reference (``pgs compare --reference``): PSNR change
     and how many times smaller its file is than the reference's float32 model. None without one."""
@@ -746,13 +777,14 @@ def _reference_line(results: dict) -> str:
 def all_tables(results: dict) -> list[Table]:
     elements, alive = elements_table(results), alive_table(results)
     ref, seeds = reference_table(results), seed_table(results)
-    cen = census_table(results)
+    cen, curves = census_table(results), curve_table(results)
     return ([quality_table(results)] + ([seeds] if seeds is not None else [])
             + ([ref] if ref is not None else [])
             + [groups_table(results), table3(results)]
             + section_tables(results) + ([elements] if elements is not None else [])
             + [speed_table(results)] + ([alive] if alive is not None else [])
             + ([cen] if cen is not None else [])
+            + ([curves] if curves is not None else [])
             + [bd_table(results)])
 
 

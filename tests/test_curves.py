@@ -1,0 +1,105 @@
+"""The training-curve summary of a run (baseline.eval.curves) and its report table."""
+import json
+
+import pytest
+
+from baseline.eval.curves import summarize, train_curve
+
+
+def _log(its, bits_from=None):
+    """Log lines every 10 iterations: l1 = it / 1000, bits once ``it > bits_from``."""
+    out = []
+    for it in its:
+        d = {"it": it, "l1": it / 1000.0, "gaussians": 2 * it, "anchors": it + 1}
+        if bits_from is not None and it > bits_from:
+            d["bpp"] = 3.0
+        out.append(d)
+    return out
+
+
+def test_summarize_windows_the_schedule():
+    s = summarize(_log(range(10, 601, 10), bits_from=400), iterations=600)
+    assert s["bounds"] == [0, 100, 200, 300, 400, 500, 600]
+    # window 1 holds it 10..100: mean l1 = mean(10..100 step 10) / 1000 = 0.055
+    assert s["l1"][0] == pytest.approx(0.055)
+    assert s["l1"][-1] == pytest.approx(0.555)
+    assert s["bits_per_value"] == [None, None, None, None, 3.0, 3.0]
+    assert s["anchors"] == [101, 201, 301, 401, 501, 601]
+    assert s["gaussians"][2] == pytest.approx(2 * 255.0)
+
+
+def test_summarize_marks_empty_windows_and_defaults_to_the_last_iteration():
+    s = summarize(_log([10, 20, 290, 300]), windows=3)
+    assert s["iterations"] == 300 and s["bounds"] == [0, 100, 200, 300]
+    assert s["l1"][1] is None and s["anchors"][1] is None and s["gaussians"][1] is None
+    assert summarize([]) is None
+    with pytest.raises(ValueError, match="windows"):
+        summarize(_log([10]), windows=0)
+
+
+def test_train_curve_reads_the_log_up_to_a_torn_line(tmp_path):
+    assert train_curve(tmp_path) is None                    # no log: no curve
+    lines = [json.dumps(d) for d in _log(range(10, 61, 10))]
+    (tmp_path / "train_log.jsonl").write_text("\n".join(lines[:3]) + '\n{"it": 40, "l1' + "\n"
+                                              + "\n".join(lines[4:]) + "\n")
+    c = train_curve(tmp_path, iterations=60, windows=2)
+    assert c["l1"] == [pytest.approx(0.02), None]          # only it 10..30 before the torn line
+
+
+def test_curve_table_gives_each_span_beside_the_baselines():
+    from baseline.eval.report import format_report
+    from tests.test_report import _rows_of, _with_counts, stored_results
+
+    res = _with_counts(stored_results())
+    assert "Training curves" not in format_report(res)
+    for r in res["runs"]:
+        if r["method"] == "entropy-factorized":
+            continue
+        pgs = r["method"] == "predict-gs"
+        l1 = [0.06, 0.05, 0.04, 0.035, 0.03, 0.025]
+        r["train_curve"] = {"iterations": 600, "bounds": [0, 100, 200, 300, 400, 500, 600],
+                            "l1": [v * (1.1 if pgs else 1.0) for v in l1],
+                            "bits_per_value": [None, None, None, 2.0, 2.0, 2.0 if pgs else 1.5],
+                            "gaussians": [1.0] * 6, "anchors": [1] * 6}
+    txt = format_report(res)
+    rows = {(r[0], r[1]): r for r in _rows_of(txt, "Training curves")}
+    assert set(rows) == {("HAC", f"{lm:g}") for lm in (0.0005, 0.002, 0.004)} | \
+        {("Predict-GS", f"{lm:g}") for lm in (0.0005, 0.002, 0.004)}
+    assert rows[("HAC", "0.004")][2:] == ["0.0600", "0.0500", "0.0400", "0.0350", "0.0300",
+                                         "0.0250", "120.0"]       # 1.5 bits x 80 values
+    p = rows[("Predict-GS", "0.004")]
+    assert p[2:4] == ["0.0660", "(+10.0%)"]
+    # 2.0 bits x 55 coded values per anchor = 110 against HAC's 120
+    assert p[-2:] == ["110.0", "(-8.3%)"]
+    assert "L1 it 1-100" in txt
+    assert "progressive training renders downsampled views" in txt    # a Predict-GS run is shown
+    assert ("not shown (records archived before the training curve was kept): "
+            "HAC+entropy-factorized") in txt
+
+
+def _run_dir(path, its, iterations=60, l1_scale=1.0, attrs_dims=None):
+    path.mkdir()
+    (path / "config.toml").write_text(f"[train]\niterations = {iterations}\n")
+    log = _log(its, bits_from=30)
+    for d in log:
+        d["l1"] *= l1_scale
+    (path / "train_log.jsonl").write_text("".join(json.dumps(d) + "\n" for d in log))
+    if attrs_dims:
+        (path / "compare.json").write_text(json.dumps(
+            {"encode": {"attributes": [{"dims": d} for d in attrs_dims]}}))
+    return path
+
+
+def test_pgs_curves_compares_runs_and_leaves_a_running_ones_later_spans_empty(tmp_path, capsys):
+    from baseline.cli import main
+
+    a = _run_dir(tmp_path / "a", range(10, 61, 10), attrs_dims=[50, 6, 30])
+    b = _run_dir(tmp_path / "b", range(10, 41, 10), l1_scale=1.2)      # still training at it 40
+    assert main(["curves", str(a), str(b), "--windows", "3"]) == 0
+    out = capsys.readouterr().out
+    assert "L1 it 1-20" in out and "L1 it 41-60" in out           # spans of the configured schedule
+    rows = {ln.split()[0]: ln.split()[1:] for ln in out.splitlines() if ln.startswith(("a ", "b "))}
+    assert rows["a"] == ["0.0150", "0.0350", "0.0550", "258.0"]     # 3 bits x 86 values
+    assert rows["b"] == ["0.0180", "(+20.0%)", "0.0420", "(+20.0%)", "-", "-"]
+    assert main(["curves", str(tmp_path)]) == 2                     # no log: a clear error
+    assert "no training log" in capsys.readouterr().err
