@@ -84,11 +84,12 @@ def _schedule(run_dir: str | Path) -> Optional[int]:
 
 
 def _cell(v: Optional[float], ref: Optional[float], nd: int) -> str:
+    from baseline.eval.report import _change, _pct
+
     if v is None:
         return "-"
-    if ref is None:
-        return f"{v:.{nd}f}"
-    return f"{v:.{nd}f} ({100.0 * (v / ref - 1.0):+.1f}%)" if ref else f"{v:.{nd}f}"
+    ch = _change(v, ref)
+    return f"{v:.{nd}f}" if ch is None else f"{v:.{nd}f} ({_pct(ch)})"
 
 
 def span_headers(curves: list[dict]) -> list[str]:
@@ -123,19 +124,20 @@ def values_per_anchor(run_dir: str | Path) -> Optional[int]:
     neither is recorded."""
     import tomllib
 
+    from baseline.eval.report import rate_elements
+
     run_dir = Path(run_dir)
+    row = {}
     try:
-        fixed = int(tomllib.loads((run_dir / "config.toml").read_text())
-                    .get("entropy", {}).get("rate_values_per_anchor", 0) or 0)
+        row["rate_values_per_anchor"] = (tomllib.loads((run_dir / "config.toml").read_text())
+                                         .get("entropy", {}).get("rate_values_per_anchor", 0))
     except (OSError, ValueError, TypeError):
-        fixed = 0
-    if fixed > 0:
-        return fixed
+        pass
     try:
-        attrs = json.loads((run_dir / "compare.json").read_text())["encode"]["attributes"]
-        return sum(int(a["dims"]) for a in attrs) or None
+        row["attributes"] = json.loads((run_dir / "compare.json").read_text())["encode"]["attributes"]
     except (OSError, ValueError, KeyError, TypeError):
-        return None
+        pass
+    return rate_elements(row) or None
 
 
 def format_curves(runs: list[str | Path], windows: int = WINDOWS) -> str:
