@@ -48,6 +48,23 @@ def test_cpu_preset_scales_milestones():
     assert cfg.train.at(10000) == 1000 and cfg.train.at(500) == 50
 
 
+def test_cpu_preset_scales_the_mask_lr_and_the_demo_does_not():
+    """The 6k cpu preset trains the masks with lr x 30000 / iterations; its runs get hashes of
+    their own (records of the unscaled preset are never reused for it); the 1k demo keeps the
+    paper's mask lr, so its hashes are those of the unscaled preset."""
+    cpu = build_config(["cpu"], [])
+    assert cpu.lr.mask_schedule_scaled
+    unscaled = build_config(["cpu"], ["lr.mask_schedule_scaled=false"])
+    assert config_hash(cpu) != config_hash(unscaled)
+    assert config_hash(cpu) == config_hash(build_config(["cpu", "masks-lr-scaled"], []))
+    demo = build_config(["cpu", "demo"], ["train.iterations=6000", "entropy.lmbda=0.004"])
+    assert not demo.lr.mask_schedule_scaled
+    archived = {p.name.rsplit("-", 1)[1] for p in
+                (Path(__file__).parent.parent / "docs/examples/demo-6k-s3/runs").iterdir()}
+    assert config_hash(demo) in archived          # HAC's 6k demo record, trained before the fold
+    assert build_config(["cpu", "demo", "masks-lr-scaled"], []).lr.mask_schedule_scaled
+
+
 def test_unknown_key_names_key_and_patch(tmp_path):
     p = write(tmp_path, "bad", "[train]\niteratons = 5\n")
     with pytest.raises(ConfigError) as e:
