@@ -48,6 +48,12 @@ def test_cpu_preset_scales_milestones():
     assert cfg.train.at(10000) == 1000 and cfg.train.at(500) == 50
 
 
+def archived_hashes(example: str) -> set[str]:
+    """The config hashes in the run folder names of ``docs/examples/<example>/runs``."""
+    runs = Path(__file__).parent.parent / "docs/examples" / example / "runs"
+    return {p.name.rsplit("-", 1)[1] for p in runs.iterdir()}
+
+
 def test_cpu_preset_scales_the_mask_lr_and_the_demo_does_not():
     """The 6k cpu preset trains the masks with lr x 30000 / iterations; its runs get hashes of
     their own (records of the unscaled preset are never reused for it); the 1k demo keeps the
@@ -59,8 +65,7 @@ def test_cpu_preset_scales_the_mask_lr_and_the_demo_does_not():
     assert config_hash(cpu) == config_hash(build_config(["cpu", "masks-lr-scaled"], []))
     demo = build_config(["cpu", "demo"], ["train.iterations=6000", "entropy.lmbda=0.004"])
     assert not demo.lr.mask_schedule_scaled
-    archived = {p.name.rsplit("-", 1)[1] for p in
-                (Path(__file__).parent.parent / "docs/examples/demo-6k-s3/runs").iterdir()}
+    archived = archived_hashes("demo-6k-s3")
     assert config_hash(demo) in archived          # HAC's 6k demo record, trained before the fold
     assert build_config(["cpu", "demo", "masks-lr-scaled"], []).lr.mask_schedule_scaled
 
@@ -139,8 +144,7 @@ def test_hash_of_finished_runs_survives_new_options():
     old = ["entropy.lmbda=0.004", "entropy.grid.auto=false", "predict.grid_auto=false"]
     base = build_config(["cpu", "demo"], old)
     assert ("lr", "mask_schedule_scaled") in LATER_KEYS
-    archived = {p.name.rsplit("-", 1)[1] for p in
-                (Path(__file__).parent.parent / "docs/examples/demo-schedule/1k/runs").iterdir()}
+    archived = archived_hashes("demo-schedule/1k")
     assert TRAINING_SEMANTICS >= 2 and config_hash(base) not in archived
 
     def h1(c):                          # the rest of the test: version-1 hashes
