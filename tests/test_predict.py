@@ -301,6 +301,30 @@ def test_contracted_sfp_box_is_the_inner_quantiles_and_decodes_the_same(tmp_path
     assert torch.equal(dec2.model.provider.predict(dec2.model.xyz), f_dec)
 
 
+def test_scene_facts_tool(decoded_files, capsys):
+    """tools/scene_facts.py: the camera layout and point boxes of a scene, and per run the
+    anchors and (Predict-GS only) the SFP's box over the anchors' inner box."""
+    import importlib.util
+    import json
+    import pathlib
+
+    spec = importlib.util.spec_from_file_location(
+        "scene_facts", pathlib.Path(__file__).parents[1] / "tools" / "scene_facts.py")
+    tool = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(tool)
+    runs = [str(decoded_files["baseline"]), str(decoded_files["predict-gs"])]
+    assert tool.main([str(decoded_files["scene"]), "--runs", *runs]) == 0
+    scene, hac, pgs = [json.loads(x) for x in capsys.readouterr().out.splitlines()]
+    assert scene["views"] == 10 and scene["points"] > 0
+    assert 0 <= scene["view_dir_resultant"] <= 1 and 0 <= scene["camera_side_resultant"] <= 1
+    assert len(scene["sfm_box_over_inner"]) == 3 and min(scene["sfm_box_over_inner"]) >= 1
+    assert hac["anchors"] > 0 and "sfp_box_over_anchors_inner" not in hac
+    # the SFP box is the initial anchors' full box plus 10% per side: wider than their inner 90%
+    assert min(pgs["sfp_box_over_anchors_inner"]) > 1
+    with pytest.raises(SystemExit, match="checkpoint"):
+        tool.main([str(decoded_files["scene"]), "--runs", str(decoded_files["scene"])])
+
+
 def test_kept_share_probe_tool(small_scene, capsys):
     """tools/kept_share_probe.py: with one seed HAC and Predict-GS start with the same kept
     share (the same decoder, zero features); a short training reports each asked step."""
