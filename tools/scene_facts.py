@@ -31,13 +31,9 @@ from baseline.data.scene import load_scene
 
 def camera_facts(scene) -> dict:
     cams = scene.train_cameras + scene.test_cameras
-    centres, dirs = [], []
-    for c in cams:
-        V = c.viewmat.double()
-        R, t = V[:3, :3], V[:3, 3]
-        centres.append((-R.T @ t).numpy())
-        dirs.append((R.T @ torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)).numpy())
-    centres, dirs = np.array(centres), np.array(dirs)
+    centres = torch.stack([c.center for c in cams]).double().numpy()
+    R = torch.stack([c.viewmat[:3, :3] for c in cams]).double()
+    dirs = R[:, 2, :].numpy()           # camera +z (the viewing direction) in world: R^T e_z
     pts = scene.points.double().numpy()
     lo, hi = np.quantile(pts, [0.05, 0.95], axis=0)
     side = centres - np.median(pts, axis=0)
