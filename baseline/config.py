@@ -543,6 +543,7 @@ LATER_KEYS = {("lr", "mask_schedule_scaled"): False,
               ("lr", "channel_final"): 0.0005,
               ("entropy", "rate_values_per_anchor"): 0,
               ("predict", "fusion_init"): "zero",
+              ("predict", "grid_init"): "random",
               ("predict", "box"): "extent",
               ("predict", "box_quantile"): 0.01}
 

@@ -18,12 +18,18 @@ class PredictConfig:
 
     # Spatial Feature Pool (its own binary hash grid, HAC layout) + two-layer fusion MLP -> 50.
     fusion_hidden: int = 64            # choose: the paper gives two layers and the 50-dim output only
-    # the fusion MLP's last layer at start (the paper is silent): "zero" (f_c starts at 0 for
-    # every anchor, as Scaffold-GS's per-anchor features do; the SFP learns away from it) or
-    # "default" (PyTorch's init: f_c starts as a random function of the binarized grid's random
-    # +-1 entries, a different code per anchor; the decoder then keeps ~1.6x the Gaussians,
-    # docs/notes/predict-gs-gaussian-count.md)
-    fusion_init: str = "zero"
+    # The SFP's start (the paper is silent; docs/notes/predict-gs-gaussian-count.md).
+    # grid_init: "shared" = every entry of the SFP's tables starts at +init_range, so every
+    # anchor reads one binarized code and starts with one feature, as Scaffold-GS's anchors all
+    # start at feature 0, and each cell's entries then move by their own gradients; "random" =
+    # HAC's U(-1e-4, 1e-4), a random +-1 code per cell from the first step.
+    grid_init: str = "shared"
+    # fusion_init: the fusion MLP's last layer: "default" (PyTorch's init) or "zero" (f_c = 0
+    # for every anchor, but no gradient reaches the grid until that layer has moved: the field
+    # learns one pattern for all anchors first; on a random initialisation in front of a black
+    # background every Gaussian's opacity fell below zero within 12 steps and training
+    # collapsed)
+    fusion_init: str = "default"
     grid_auto: bool = False            # size the SFP tables from the anchor count
     # the SFP's normalisation (the paper is silent): "extent" = the initial anchors' box + 10%;
     # "contract" = their [q, 1-q] quantile box + 10% fills the middle half of the grid and the

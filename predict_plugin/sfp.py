@@ -41,11 +41,13 @@ def _layout_from_json(layout: dict) -> dict:
 class SpatialFeaturePool(nn.Module):
     # what its bitstream sections hold (pgs info / reports: "sfp.grid", "sfp.fusion")
     SECTION_LABELS = {"grid": "grid", "weights": "fusion"}
-    # its training-semantics version (baseline.config.component_semantics): 3 = its initial
+    # its training-semantics version (baseline.config.component_semantics): 4 = its tables
+    # start at one shared code and the fusion MLP at PyTorch's init (predict.grid_init =
+    # "shared", predict.fusion_init = "default"); 3 = its initial
     # values come from a random stream of its own, so the decoder starts as HAC's with the same
     # seed (baseline.scaffold.model); 2 = the fusion MLP's last layer starts at zero
     # (predict.fusion_init = "zero"); 1 = PyTorch's default init
-    TRAINING_SEMANTICS = 3
+    TRAINING_SEMANTICS = 4
 
     def __init__(self, model, cfg, codec_state: Optional[dict] = None):
         """``codec_state``: what :meth:`codec_state` returned when the file was written (the
@@ -67,6 +69,12 @@ class SpatialFeaturePool(nn.Module):
             self.grid_layout = grid_options(replace(cfg.entropy.grid, auto=p.grid_auto),
                                             model.n_anchors)
         self.grid = BinaryHashGrid(**self.grid_layout)
+        if p.grid_init == "shared":      # one code for every anchor at the start
+            with torch.no_grad():
+                for table in self.grid.parameters():
+                    table.fill_(self.grid_init_value())
+        elif p.grid_init != "random":
+            raise ValueError(f"predict.grid_init must be 'shared' or 'random', got '{p.grid_init}'")
         xyz = model.xyz.detach()
         if p.box == "extent":
             lo, hi = xyz.min(0).values, xyz.max(0).values
@@ -89,6 +97,12 @@ class SpatialFeaturePool(nn.Module):
         if self.use_residual:
             model.add_per_anchor("residual", torch.zeros(model.n_anchors, p.residual_dim), grow_zeros)
         self._cache: Optional[torch.Tensor] = None
+
+    def grid_init_value(self) -> float:
+        """The value every table entry starts at with ``predict.grid_init = "shared"``: the
+        grid's own initialisation scale, positive (each entry binarizes to +1 until its first
+        update)."""
+        return float(next(iter(self.grid.grids.values())).init_range)
 
     # ------------------------------------------------------------------- provider contract
     def codec_state(self) -> dict:

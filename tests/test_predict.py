@@ -183,12 +183,40 @@ def test_auto_sized_sfp_decodes_after_the_anchor_count_changed(tmp_path):
         decode_model(tmp_path / "bad.pgs")
 
 
-def test_fusion_starts_at_zero_by_default_and_learns_away_from_it():
-    """predict.fusion_init: "zero" (default) gives f_c = 0 for every anchor at start, as
-    Scaffold-GS's features, and the first step moves the fusion's last layer (the grid's
-    gradient then flows); "default" starts from a random code per anchor."""
+def test_sfp_starts_with_one_feature_for_every_anchor_and_each_cell_learns_from_step_one():
+    """The default start (predict.grid_init = "shared", fusion_init = "default"): every table
+    entry at +init_range, so every anchor reads one binarized code and gets one feature (as
+    Scaffold-GS's anchors all start at feature 0); the first gradient reaches the grid's
+    entries, and one Adam step gives the cells different codes and the anchors different
+    features. "random" starts from HAC's random code per cell."""
     cfg = _pgs_cfg("model.voxel_size=0.2")
-    assert cfg.ext["predict"].fusion_init == "zero"
+    p = cfg.ext["predict"]
+    assert (p.grid_init, p.fusion_init) == ("shared", "default")
+    model = _pgs_model(cfg)
+    sfp = model.provider
+    assert all(bool((t == sfp.grid_init_value()).all()) for t in sfp.grid.parameters())
+    f = sfp.predict(model.xyz)
+    assert f.abs().max() > 1e-2
+    assert torch.equal(f, f[:1].expand_as(f))                   # one feature for all anchors
+    opt = torch.optim.Adam(sfp.parameters(), lr=0.005)
+    target = torch.randn_like(f)
+    (f * target).sum().backward()
+    assert sum(float(t.grad.abs().sum()) for t in sfp.grid.parameters()) > 0
+    opt.step()
+    f1 = sfp.predict(model.xyz)
+    assert f1.std(dim=0).mean() > 1e-3                          # the anchors have diverged
+    rnd = _pgs_model(_pgs_cfg("model.voxel_size=0.2", "predict.grid_init=random"))
+    f2 = rnd.provider.predict(rnd.xyz)
+    assert f2.std(dim=0).mean() > 1e-3                          # a random code per anchor
+    with pytest.raises(ValueError, match="grid_init"):
+        _pgs_model(_pgs_cfg("model.voxel_size=0.2", "predict.grid_init=ones"))
+
+
+def test_fusion_zero_option_starts_at_zero_and_learns_away_from_it():
+    """predict.fusion_init = "zero" (the SFP's semantics 2 and 3) gives f_c = 0 for every
+    anchor at start, and the first step moves the fusion's last layer (the grid's gradient then
+    flows); "default" starts from PyTorch's init."""
+    cfg = _pgs_cfg("model.voxel_size=0.2", "predict.fusion_init=zero", "predict.grid_init=random")
     model = _pgs_model(cfg)
     idx = torch.arange(model.n_anchors)
     f = model.provider.predict(model.xyz[idx])
@@ -197,7 +225,8 @@ def test_fusion_starts_at_zero_by_default_and_learns_away_from_it():
     (f * torch.randn_like(f)).sum().backward()
     last = model.provider.fusion[2]
     assert last.weight.grad is not None and last.weight.grad.abs().sum() > 0
-    rnd = _pgs_model(_pgs_cfg("model.voxel_size=0.2", "predict.fusion_init=default"))
+    rnd = _pgs_model(_pgs_cfg("model.voxel_size=0.2", "predict.fusion_init=default",
+                              "predict.grid_init=random"))
     f2 = rnd.provider.predict(rnd.xyz)
     assert f2.abs().mean() > 1e-2 and f2.std(dim=0).mean() > 1e-3   # differs between anchors
     with pytest.raises(ValueError, match="fusion_init"):
@@ -205,7 +234,7 @@ def test_fusion_starts_at_zero_by_default_and_learns_away_from_it():
 
 
 def test_sfp_training_semantics_changes_only_predict_gs_hashes():
-    """The SFP's component semantics (3: its own random stream) enters the hash of the configs that
+    """The SFP's component semantics (4: one shared code at the start) enters the hash of the configs that
     use it: the archived semantics-2 truck records of HAC keep their folder hashes, those of
     Predict-GS trained with the old init do not. (Those records predate the cpu preset's scaled
     mask learning rate: they are built here with it off, and under the current preset no hash
@@ -216,7 +245,7 @@ def test_sfp_training_semantics_changes_only_predict_gs_hashes():
 
     root = Path(__file__).parent.parent / "docs/examples/truck-r4-cpu-s2/runs"
     assert component_semantics(build_config(["cpu"])) == {}
-    assert component_semantics(build_config(["cpu", "predict-gs"])) == {"feature_provider.sfp": 3}
+    assert component_semantics(build_config(["cpu", "predict-gs"])) == {"feature_provider.sfp": 4}
     for d in root.iterdir():
         method, lam, seed, h = d.name.rsplit("-", 3)
         cfg = build_config(["cpu"] + (["predict-gs"] if method == "predict-gs" else []),
@@ -229,8 +258,8 @@ def test_sfp_training_semantics_changes_only_predict_gs_hashes():
 
 def test_hac_and_predict_gs_start_from_the_same_decoder_with_one_seed(small_scene, tmp_path):
     """The provider draws its initial values from a stream of its own: with one seed, HAC and
-    Predict-GS start from the same decoder weights (the same slots start opaque, as f_c = 0 and
-    HAC's features are 0) and the same anchors; HAC's is the draw that follows the seed."""
+    Predict-GS start from the same decoder weights and the same anchors; HAC's is the draw that
+    follows the seed."""
     from baseline.data.scene import load_scene
     from baseline.train.trainer import Trainer
 

@@ -127,3 +127,36 @@ def test_sigterm_then_resume_equals_the_uninterrupted_run(small_scene, tmp_path)
                            capture_output=True, text=True)
         assert r.returncode == 0, r.stderr
     assert (tmp_path / "a.pgs").read_bytes() == (tmp_path / "b.pgs").read_bytes()
+
+
+@pytest.mark.parametrize("patches", [[], ["predict-gs"]], ids=["hac", "predict-gs"])
+def test_a_view_that_sees_no_anchor_trains_on_the_background(small_scene, tmp_path, monkeypatch,
+                                                             patches):
+    """A training view whose prefilter keeps no anchor (a camera looking away from the scene)
+    renders the background and takes a finite step, in every phase."""
+    import baseline.pipeline as pipeline
+
+    cfg = demo_cfg(40, patches=patches)
+    t = Trainer(cfg, load_scene(small_scene), tmp_path / "run", progress=False)
+    monkeypatch.setattr(pipeline, "visible_anchors",
+                        lambda model, cam: torch.zeros(0, dtype=torch.long))
+    for phase in ("none", "noise", "adaptive"):
+        t.phase = phase
+        terms = t.step(1)
+        assert terms["gaussians"] == 0 and torch.isfinite(torch.tensor(terms["loss"])), phase
+
+
+def test_training_whose_every_anchor_is_pruned_stops_with_a_clear_error(small_scene, tmp_path):
+    """No Gaussian above zero opacity anywhere is an absorbing state (no gradient reaches
+    anything again): the first pruning that would empty the model raises TrainingCollapsed,
+    naming the iteration, and writes no checkpoint over the last one."""
+    from baseline.train.trainer import TrainingCollapsed
+
+    t = _trainer(small_scene, tmp_path / "run", 300)
+    with torch.no_grad():
+        last = t.model.decoder.mlp_opacity[-1]
+        last.weight.zero_()
+        last.bias.fill_(-100.0)                      # tanh(-100) < 0: every Gaussian dropped
+    with pytest.raises(TrainingCollapsed, match=r"collapsed at iteration \d+: every anchor"):
+        t.train()
+    assert not (tmp_path / "run" / "checkpoint.pt").exists()

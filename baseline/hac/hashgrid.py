@@ -283,7 +283,7 @@ class GridLevels(nn.Module):
         inside = ((u >= 0) & (u <= 1)).all(dim=-1)  # NaN counts as outside
         u = torch.where(inside[:, None], u, torch.full_like(u, 0.5))
         idx, w = self.corner_indices(u, exact=exact)  # [n, L, C]
-        C = idx.shape[-1]
+        L, C = idx.shape[1], idx.shape[2]
         idx = idx.reshape(-1, C)
         w = w.reshape(-1, C)  # (copies [C, n, L] into bag-major order)
         if table.requires_grad and torch.is_grad_enabled():
@@ -298,7 +298,7 @@ class GridLevels(nn.Module):
             out = acc * (1.0 / wn)
         # where, not a product: outside points get +0 (a product gives -0 for negative values),
         # as the fused kernels write
-        return torch.where(inside[:, None], out.reshape(n, -1), 0.0)
+        return torch.where(inside[:, None], out.reshape(n, L * acc.shape[1]), 0.0)
 
 
 _BACKEND = os.environ.get("PGS_GRID_BACKEND", "auto")

@@ -177,7 +177,7 @@ class ScaffoldDensify:
             return
         if self.skip[0] <= it < self.skip[1]:
             return
-        self.adjust()
+        self.adjust(it)
 
     def clamp_scaling(self) -> None:
         """The reference's clamp of the scale multipliers: log-scaling[:, 3:] <= c (c < 0: off)."""
@@ -187,7 +187,8 @@ class ScaffoldDensify:
                 s = self.t.model.per_anchor["scaling"]
                 s[:, 3:] = s[:, 3:].clamp(max=c)
 
-    def adjust(self) -> None:
+    def adjust(self, it: int = 0) -> None:
+        """Grow, then prune (at iteration ``it``, named in errors)."""
         t = self.t
         model = t.model
         K = model.n_offsets
@@ -213,6 +214,15 @@ class ScaffoldDensify:
         self.anchor_demon = torch.cat([self.anchor_demon, torch.zeros(added, device=dev)])
         prune = torch.cat([prune, torch.zeros(added, dtype=torch.bool, device=dev)])
         n_pruned = int(prune.sum())
+        if n_pruned and n_pruned == model.n_anchors:
+            # an empty model is an absorbing state (no Gaussian, no gradient): say so here,
+            # not with a shape error in the next render
+            from baseline.train.trainer import TrainingCollapsed
+            raise TrainingCollapsed(
+                f"training collapsed at iteration {it}: every anchor "
+                f"({n_pruned}) would be pruned, as no Gaussian of any anchor kept an opacity "
+                f"above zero in the views that saw it; the last checkpoint (iteration "
+                f"{t._last_saved if t._last_saved is not None else 'none'}) is kept")
         if n_pruned:
             keep = ~prune
             model.keep_anchors(keep, t.optimizer)

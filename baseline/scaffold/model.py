@@ -29,7 +29,7 @@ def grow_zeros(values, parent, inverse, n_new):
 
 def grow_max_of_parents(values, parent, inverse, n_new):
     """Per new anchor, the element-wise max of its parents' rows (Scaffold-GS feature rule)."""
-    src = values[parent].reshape(len(parent), -1)
+    src = values[parent].flatten(1)
     out = src.new_full((n_new, src.shape[1]), float("-inf"))
     out = out.scatter_reduce(0, inverse[:, None].expand_as(src), src, reduce="amax")
     return out.reshape((n_new,) + tuple(values.shape[1:]))
@@ -237,7 +237,7 @@ class AnchorModel(nn.Module):
             return {k: v[idx] for k, v in self.fixed_values.items()}
         vals = dict(self.provider.coded_values(idx))
         vals["scaling"] = torch.exp(self.per_anchor["scaling"][idx])
-        vals["offsets"] = self.per_anchor["offsets"][idx].reshape(len(idx), -1)
+        vals["offsets"] = self.per_anchor["offsets"][idx].flatten(1)   # [M, 3K], M may be 0
         return vals
 
     # ------------------------------------------------------------------------- decoding

@@ -43,6 +43,12 @@ class NonFiniteError(ValueError):
     good checkpoint."""
 
 
+class TrainingCollapsed(ValueError):
+    """Every anchor was about to be pruned: no Gaussian kept an opacity above zero in the views
+    that saw it, so nothing would receive a gradient again. Training stops; the last
+    checkpoint is kept."""
+
+
 class TrainingStopped(KeyboardInterrupt):
     """SIGINT / SIGTERM during training: the step in flight finished and a checkpoint of it
     was written; ``--resume`` (or the same ``pgs compare``) continues from there."""
