@@ -581,3 +581,30 @@ def test_bench_rows():
     assert ref["ratio_forward_backward"] == pytest.approx(1.0)
     assert cpu["ratio_forward_backward"] == pytest.approx(
         ref["forward_backward_s"] / cpu["forward_backward_s"])
+
+
+def test_kernels_are_compiled_by_a_child_that_imports_this_checkout(monkeypatch, tmp_path):
+    """The child that fills numba's cache runs ``python -c`` in the folder this package was
+    imported from, so it compiles these kernels (not another checkout's found first on
+    ``sys.path`` from the caller's working directory), and that folder imports this package."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    import baseline
+
+    seen = {}
+
+    def fake_run(cmd, **kw):
+        seen.update(kw)
+        return subprocess.CompletedProcess(cmd, 0, "", "")
+
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(subprocess, "run", fake_run)
+    assert cpu_backend._compile_in_child()
+    root = Path(seen["cwd"])
+    assert (root / "baseline" / "render" / "cpu.py").resolve() == Path(cpu_backend.__file__).resolve()
+    monkeypatch.undo()
+    out = subprocess.run([sys.executable, "-c", "import baseline; print(baseline.__file__)"],
+                         cwd=root, capture_output=True, text=True, check=True).stdout.strip()
+    assert Path(out).resolve() == Path(baseline.__file__).resolve()

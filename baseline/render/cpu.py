@@ -129,14 +129,20 @@ _CHILD_ENV = "PGS_NUMBA_COMPILE_CHILD"
 
 def _compile_in_child() -> bool:
     """Compile the kernels into numba's disk cache in a child process (same interpreter,
-    environment and cache location). True when the child succeeded."""
+    environment and cache location). True when the child succeeded.
+
+    The child runs in the folder this ``baseline`` package was imported from: ``python -c``
+    puts its working directory first on ``sys.path``, so from another checkout's folder it
+    would compile (and cache) that checkout's kernels instead of these."""
     import subprocess
+    from pathlib import Path
 
     env = dict(os.environ, **{_CHILD_ENV: "1"})
     code = "from baseline.render.cpu import kernels; kernels()"
+    root = Path(__file__).resolve().parents[2]
     try:
         r = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True,
-                           text=True, timeout=1800)
+                           text=True, timeout=1800, cwd=root)
     except (OSError, subprocess.SubprocessError) as e:
         log.warning("compiling the CPU kernels in a child process failed: %s", e)
         return False
