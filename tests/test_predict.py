@@ -355,8 +355,9 @@ def test_scene_facts_tool(decoded_files, capsys):
 
 
 def test_kept_share_probe_tool(small_scene, capsys):
-    """tools/kept_share_probe.py: with one seed HAC and Predict-GS start with the same kept
-    share (the same decoder, zero features); a short training reports each asked step."""
+    """tools/kept_share_probe.py: with one seed it measures HAC's and Predict-GS's start (one row
+    each; with the SFP's earlier zero fusion layer, f_c = 0 as HAC's features, the two starts are
+    the same decoder on the same input); a short training reports each asked step."""
     import importlib.util
     import json
     import pathlib
@@ -367,7 +368,11 @@ def test_kept_share_probe_tool(small_scene, capsys):
     spec.loader.exec_module(tool)
     assert tool.main([str(small_scene), "--patch", "demo", "--init-seeds", "1"]) == 0
     rows = [json.loads(x) for x in capsys.readouterr().out.splitlines()]
-    assert len(rows) == 2 and rows[0]["kept_share"] == rows[1]["kept_share"]
+    assert [(r["seed"], r["patches"]) for r in rows] == [(0, ["demo"]), (0, ["demo", "predict-gs"])]
+    assert tool.main([str(small_scene), "--patch", "demo", "--patch", "sfp-zero-fusion",
+                      "--init-seeds", "1"]) == 0
+    zero = [json.loads(x) for x in capsys.readouterr().out.splitlines()]
+    assert zero[0]["kept_share"] == zero[1]["kept_share"] == rows[0]["kept_share"]
     assert 0 < rows[0]["kept_share"] <= 1 and abs(sum(rows[0]["per_anchor"]) - 1) < 1e-2
     assert tool.main([str(small_scene), "--patch", "demo", "--patch", "predict-gs",
                       "--steps", "0", "3"]) == 0
