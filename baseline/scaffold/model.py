@@ -8,6 +8,7 @@ that initialises the rows of grown anchors.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Callable, Optional
 
@@ -29,7 +30,7 @@ def grow_zeros(values, parent, inverse, n_new):
 
 def grow_max_of_parents(values, parent, inverse, n_new):
     """Per new anchor, the element-wise max of its parents' rows (Scaffold-GS feature rule)."""
-    src = values[parent].flatten(1)
+    src = values[parent].reshape(len(parent), math.prod(values.shape[1:]))   # [P, D], P may be 0
     out = src.new_full((n_new, src.shape[1]), float("-inf"))
     out = out.scatter_reduce(0, inverse[:, None].expand_as(src), src, reduce="amax")
     return out.reshape((n_new,) + tuple(values.shape[1:]))
