@@ -70,9 +70,7 @@ class SpatialFeaturePool(nn.Module):
                                             model.n_anchors)
         self.grid = BinaryHashGrid(**self.grid_layout)
         if p.grid_init == "shared":      # one code for every anchor at the start
-            with torch.no_grad():
-                for table in self.grid.parameters():
-                    table.fill_(self.grid_init_value())
+            self.grid.reset_parameters(shared=True)
         elif p.grid_init != "random":
             raise ValueError(f"predict.grid_init must be 'shared' or 'random', got '{p.grid_init}'")
         xyz = model.xyz.detach()
@@ -97,12 +95,6 @@ class SpatialFeaturePool(nn.Module):
         if self.use_residual:
             model.add_per_anchor("residual", torch.zeros(model.n_anchors, p.residual_dim), grow_zeros)
         self._cache: Optional[torch.Tensor] = None
-
-    def grid_init_value(self) -> float:
-        """The value every table entry starts at with ``predict.grid_init = "shared"``: the
-        grid's own initialisation scale, positive (each entry binarizes to +1 until its first
-        update)."""
-        return float(next(iter(self.grid.grids.values())).init_range)
 
     # ------------------------------------------------------------------- provider contract
     def codec_state(self) -> dict:

@@ -194,7 +194,8 @@ def test_sfp_starts_with_one_feature_for_every_anchor_and_each_cell_learns_from_
     assert (p.grid_init, p.fusion_init) == ("shared", "default")
     model = _pgs_model(cfg)
     sfp = model.provider
-    assert all(bool((t == sfp.grid_init_value()).all()) for t in sfp.grid.parameters())
+    start = sfp.grid.config["init_range"]
+    assert start > 0 and all(bool((t == start).all()) for t in sfp.grid.parameters())
     f = sfp.predict(model.xyz)
     assert f.abs().max() > 1e-2
     assert torch.equal(f, f[:1].expand_as(f))                   # one feature for all anchors

@@ -194,9 +194,13 @@ class GridLevels(nn.Module):
         self.init_range = float(init_range)
         self.reset_parameters()
 
-    def reset_parameters(self) -> None:
+    def reset_parameters(self, shared: bool = False) -> None:
+        """U(-init_range, init_range); ``shared``: every entry at +init_range (one code)."""
         with torch.no_grad():
-            self.params.uniform_(-self.init_range, self.init_range)
+            if shared:
+                self.params.fill_(self.init_range)
+            else:
+                self.params.uniform_(-self.init_range, self.init_range)
 
     @property
     def n_levels(self) -> int:
@@ -506,9 +510,11 @@ class BinaryHashGrid(nn.Module):
         """Number of binary values stored (table entries)."""
         return sum(g.params.numel() for g in self.grids.values())
 
-    def reset_parameters(self) -> None:
+    def reset_parameters(self, shared: bool = False) -> None:
+        """Random entries (HAC's start), or with ``shared`` every entry at +init_range: every
+        point then reads the same binarized code until the entries move."""
         for g in self.grids.values():
-            g.reset_parameters()
+            g.reset_parameters(shared=shared)
 
     # ---------------------------------------------------------------- bounds
     def set_bounds(self, xyz_min, xyz_max) -> None:

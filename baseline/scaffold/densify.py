@@ -221,8 +221,7 @@ class ScaffoldDensify:
             raise TrainingCollapsed(
                 f"training collapsed at iteration {it}: every anchor "
                 f"({n_pruned}) would be pruned, as no Gaussian of any anchor kept an opacity "
-                f"above zero in the views that saw it; the last checkpoint (iteration "
-                f"{t._last_saved if t._last_saved is not None else 'none'}) is kept")
+                f"above zero in the views that saw it; the last checkpoint is kept")
         if n_pruned:
             keep = ~prune
             model.keep_anchors(keep, t.optimizer)
