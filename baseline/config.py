@@ -545,13 +545,15 @@ LATER_KEYS = {("lr", "mask_schedule_scaled"): False,
               ("predict", "fusion_init"): "zero",
               ("predict", "grid_init"): "random",
               ("predict", "box"): "extent",
-              ("predict", "box_quantile"): 0.01}
+              ("predict", "box_quantile"): 0.01,
+              ("predict", "residual_grow"): "zero"}
 
 # Options that only one component reads, added or given new defaults after runs of configs
 # without that component were archived: left out of the hash of a config that does not select
 # the component (its value cannot change what such a config trains).
 COMPONENT_KEYS = {("predict", "fusion_init"): ("feature_provider", "sfp"),
-                  ("predict", "grid_init"): ("feature_provider", "sfp")}
+                  ("predict", "grid_init"): ("feature_provider", "sfp"),
+                  ("predict", "residual_grow"): ("feature_provider", "sfp")}
 
 
 def component_semantics(cfg: Config) -> dict[str, int]:

@@ -39,6 +39,11 @@ class PredictConfig:
     # Residual compensation
     residual: bool = True              # False: SFP only (ablation)
     residual_dim: int = 25
+    # what a grown anchor's residual starts at (the paper is silent): "zero" = no correction
+    # (its Gaussians start as the field predicts them there); "parent" = the element-wise max
+    # of its parents' residuals, the rule Scaffold-GS and HAC apply to the per-anchor feature
+    # that the residual takes the place of
+    residual_grow: str = "zero"
     residual_from: int = 5000          # stage 2 starts here (stage 1: SFP only)
     mgrd_hidden: int = 64              # choose: hidden width of each MGRD head
     # Progressive downsampling of the training view (equation 6)

@@ -3,7 +3,8 @@
 f_c = F(I(H_xyz, H_xy, H_xz, H_yz; x)): the anchor position queries a binarized hash grid with
 HAC's layout (its own instance), the concatenated level features go through a two-layer fusion
 MLP to the 50-dim predicted feature that replaces the per-anchor feature as input of the
-unchanged decoder MLPs. Each anchor also carries a residual f_r (25 dims, zero for new anchors)
+unchanged decoder MLPs. Each anchor also carries a residual f_r (25 dims; a grown anchor's starts at
+zero, or with ``predict.residual_grow = "parent"`` at its parents' max as HAC grows features)
 that the MGRD refiner decodes; the entropy model codes f_r instead of the feature.
 
 Choices (documented): the SFP normalisation box is fixed at start from the initial anchors,
@@ -30,7 +31,10 @@ import torch.nn as nn
 from baseline.contracts import CodedAttribute
 from baseline.hac.hashgrid import BinaryHashGrid
 from baseline.scaffold.build import grid_options
-from baseline.scaffold.model import grow_zeros
+from baseline.scaffold.model import grow_max_of_parents, grow_zeros
+
+# predict.residual_grow -> the grow rule of the residual (baseline.scaffold.model.GrowRule)
+RESIDUAL_GROW_RULES = {"zero": grow_zeros, "parent": grow_max_of_parents}
 
 
 def _layout_from_json(layout: dict) -> dict:
@@ -92,8 +96,12 @@ class SpatialFeaturePool(nn.Module):
         elif p.fusion_init != "default":
             raise ValueError(f"predict.fusion_init must be 'default' or 'zero', got '{p.fusion_init}'")
         self.use_residual = bool(p.residual) and p.residual_dim > 0
+        if p.residual_grow not in RESIDUAL_GROW_RULES:
+            raise ValueError(f"predict.residual_grow must be one of {sorted(RESIDUAL_GROW_RULES)}, "
+                             f"got '{p.residual_grow}'")
         if self.use_residual:
-            model.add_per_anchor("residual", torch.zeros(model.n_anchors, p.residual_dim), grow_zeros)
+            model.add_per_anchor("residual", torch.zeros(model.n_anchors, p.residual_dim),
+                                 RESIDUAL_GROW_RULES[p.residual_grow])
         self._cache: Optional[torch.Tensor] = None
 
     # ------------------------------------------------------------------- provider contract

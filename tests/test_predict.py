@@ -234,6 +234,54 @@ def test_fusion_zero_option_starts_at_zero_and_learns_away_from_it():
         _pgs_model(_pgs_cfg("model.voxel_size=0.2", "predict.fusion_init=ones"))
 
 
+@pytest.mark.parametrize("rule", ["zero", "parent"])
+def test_grown_anchor_residual_rule(rule):
+    """predict.residual_grow: a grown anchor's residual is zero (default) or the element-wise
+    max of its parents' residuals (HAC's feature rule); the parents' rows are unchanged, and a
+    rule that does not exist is refused by name."""
+    cfg = _pgs_cfg("model.voxel_size=0.2", f"predict.residual_grow={rule}")
+    model = _pgs_model(cfg, n=20)
+    N = model.n_anchors
+    with torch.no_grad():
+        r = model.per_anchor["residual"]
+        r.copy_(torch.randn(r.shape, generator=torch.Generator().manual_seed(1)))
+    before = model.per_anchor["residual"].detach().clone()
+    # three candidates: parents 0 and 1 make new anchor 0, parent 2 makes new anchor 1
+    parent, inverse = torch.tensor([0, 1, 2]), torch.tensor([0, 0, 1])
+    model.append_anchors(torch.tensor([[3.0, 3.0, 3.0], [4.0, 4.0, 4.0]]), torch.zeros(2, 6),
+                         parent, inverse)
+    got = model.per_anchor["residual"].detach()
+    assert got.shape == (N + 2, 25) and torch.equal(got[:N], before)
+    if rule == "zero":
+        assert torch.equal(got[N:], torch.zeros(2, 25))
+    else:
+        assert torch.equal(got[N], torch.maximum(before[0], before[1]))
+        assert torch.equal(got[N + 1], before[2])
+    with pytest.raises(ValueError, match="residual_grow"):
+        _pgs_model(_pgs_cfg("model.voxel_size=0.2", "predict.residual_grow=mean"))
+
+
+def test_predict_gs_hash_of_the_archived_truck_record_survives_new_options():
+    """Options added to Predict-GS after its semantics-4 truck records were archived stay out of
+    the hash at their default: the current code reuses those records (same training), and the
+    option turned on trains a new run."""
+    from pathlib import Path
+
+    from baseline.config import config_hash
+
+    root = Path(__file__).parent.parent / "docs/examples/truck-r4-cpu-s4/runs"
+    runs = {d.name.rsplit("-", 1)[0]: d.name.rsplit("-", 1)[1] for d in root.iterdir()}
+    for name, h in runs.items():
+        method, lam, seed = name.rsplit("-", 2)
+        patches = ["cpu"] + (["predict-gs"] if method == "predict-gs" else [])
+        sets = ["data.resolution=4", f"entropy.lmbda={float(lam[1:])!r}",
+                f"train.seed={int(seed[1:])}"]
+        assert config_hash(build_config(patches, sets)) == h, name
+        on = build_config(patches + ["residual-grow-parent"], sets)
+        assert (config_hash(on) == h) == (method == "baseline"), name
+    assert "predict-gs-l0.004-s0" in runs
+
+
 def test_sfp_training_semantics_changes_only_predict_gs_hashes():
     """The SFP's component semantics (4: one shared code at the start) enters the hash of the configs that
     use it: the archived semantics-2 truck records of HAC keep their folder hashes, those of
