@@ -424,3 +424,20 @@ def test_verdict_spells_out_who_wins_by_how_much():
     assert "trains in 1.00x HAC's time" in txt and v[-1] == res["scope"]
     md = format_report(res, markdown=True)
     assert md.index("### Verdict") < md.index("Quality and size")
+
+
+def test_a_thin_psnr_overlap_is_shown_and_named_in_the_verdict():
+    res = stored_results()
+    full = {b["method"]: b for b in compute_bd(res)}["predict-gs"]
+    assert full["psnr_overlap"] == pytest.approx([25.1, 27.0, 1.0])
+    assert not any("thin overlap" in line for line in verdict_lines(res))
+    # the contender's curve shifted up until it meets the baseline's over 0.3 of 1.9 dB
+    for r in res["runs"]:
+        if r["method"] == "predict-gs":
+            r["psnr"] += 1.6
+    b = {b["method"]: b for b in compute_bd(res)}["predict-gs"]
+    assert b["bd_rate"] is not None
+    assert b["psnr_overlap"] == pytest.approx([26.7, 27.0, 0.3 / 1.9])
+    line = next(l for l in verdict_lines(res) if l.startswith("Predict-GS is"))
+    assert "thin overlap" in line and "26.70-27.00 dB" in line
+    assert "(16%, thin)" in format_report(res)

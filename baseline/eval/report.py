@@ -23,12 +23,16 @@ import math
 from pathlib import Path
 from typing import Callable, Optional
 
-from baseline.eval.bdrate import BDError, bd_psnr, bd_rate
+from baseline.eval.bdrate import BDError, bd_psnr, bd_rate, overlap
 from baseline.fileio import write_text_atomic
 
 MB = 2 ** 20
 GROUP_ORDER = ["feature", "anchor", "scaling", "offsets", "masks", "hash", "mlps", "header+framing"]
 BD_MIN_POINTS = 3
+# A Bjontegaard delta integrates over the PSNR interval both curves cover; below this share of
+# the narrower curve's PSNR span the report calls the overlap thin (the delta then describes a
+# sliver of the curves, and one point moves it far)
+BD_THIN_OVERLAP = 1.0 / 3.0
 
 
 # ------------------------------------------------------------------------------ names
@@ -174,6 +178,8 @@ def _bd_item(method: str, seed, base: list[dict], rs: list[dict]) -> dict:
         return item
     args = ([b["mb"] for b in base], [b["psnr"] for b in base],
             [r["mb"] for r in rs], [r["psnr"] for r in rs])
+    lo, hi, share = overlap(args[1], args[3])
+    item["psnr_overlap"] = [lo, hi, share] if share > 0 else None
     notes = []
     for key, fn in (("bd_rate", bd_rate), ("bd_psnr", bd_psnr)):
         try:
@@ -586,6 +592,23 @@ def _not_shown(results: dict, kept: Callable[[dict], bool], what: str) -> list[s
             if skipped else [])
 
 
+def _overlap_cell(b: dict) -> str:
+    ov = b.get("psnr_overlap")
+    if not ov:
+        return "-"
+    lo, hi, share = ov
+    return f"{lo:.2f}-{hi:.2f} dB ({share:.0%}{', thin' if share < BD_THIN_OVERLAP else ''})"
+
+
+def thin_overlap_note(b: dict) -> str:
+    """'' or the verdict's caveat when the BD-rate's PSNR overlap is thin."""
+    ov = b.get("psnr_overlap")
+    if b.get("bd_rate") is None or not ov or ov[2] >= BD_THIN_OVERLAP:
+        return ""
+    return (f"; over {ov[0]:.2f}-{ov[1]:.2f} dB only, {ov[2]:.0%} of the narrower curve's PSNR "
+            f"span: a thin overlap, more rate points where the curves meet make it a measurement")
+
+
 def bd_table(results: dict) -> Table:
     bd = results.get("bd") or compute_bd(results)
     seeded = any(b.get("seed") is not None for b in bd)
@@ -599,10 +622,14 @@ def bd_table(results: dict) -> Table:
         curve = ([("seed-mean curves" if sd == "mean" else f"seed {sd}")] if seeded else [])
         rows.append([label(results, b["method"])] + curve + [f"{b['points']} vs {b['baseline_points']}",
                      "-" if b["bd_rate"] is None else f"{b['bd_rate']:+.2f}",
-                     "-" if b["bd_psnr"] is None else f"{b['bd_psnr']:+.3f}", mark])
+                     "-" if b["bd_psnr"] is None else f"{b['bd_psnr']:+.3f}",
+                     _overlap_cell(b), mark])
     notes = foot + ["Piecewise cubic (PCHIP) interpolation of log10(size) vs PSNR (BD-rate) "
                     "and PSNR vs log10(size) (BD-PSNR), integrated over the overlapping "
                     "interval; size = file MB. Negative BD-rate = fewer bytes at equal PSNR. "
+                    "PSNR overlap: the interval the BD-rate integrates over and its share of the "
+                    "narrower curve's PSNR span (thin below "
+                    f"{BD_THIN_OVERLAP:.0%}: the delta then describes a sliver of the curves). "
                     "This, not a pair of runs at one lambda, is the rate-distortion comparison: "
                     "lambda only moves each method along its own curve."]
     if seeded:
@@ -612,7 +639,7 @@ def bd_table(results: dict) -> Table:
                      "per-seed rows show how far one seed moves it.")
     return Table(f"Bjontegaard deltas against {label(results, results.get('baseline', 'baseline'))}",
                  ["method"] + (["curve"] if seeded else []) +
-                 ["points", "BD-rate (%)", "BD-PSNR (dB)", "note"], rows, notes,
+                 ["points", "BD-rate (%)", "BD-PSNR (dB)", "PSNR overlap", "note"], rows, notes,
                  left=2 if seeded else 1)
 
 
@@ -816,7 +843,7 @@ def verdict_lines(results: dict) -> list[str]:
         if b is not None and b["bd_rate"] is not None:
             r = b["bd_rate"]
             lines.append(f"{name} is {abs(r):.1f}% {'smaller' if r < 0 else 'larger'} than {bname} "
-                         f"at equal quality (BD-rate {r:+.2f}%, {curve})")
+                         f"at equal quality (BD-rate {r:+.2f}%, {curve}{thin_overlap_note(b)})")
         elif b is not None:
             lines.append(f"{name} vs {bname}: no BD-rate ({b['note'] or 'curves do not overlap'})")
         if b is not None and b["bd_psnr"] is not None:
