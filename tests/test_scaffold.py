@@ -226,3 +226,32 @@ def test_scaling_clamp_after_the_adjustments_only_when_asked(to_end):
     assert model.n_anchors == 3 and (s[:, :3] == 2.0).all()      # positions' scales untouched
     expected = cfg.densify.prune_clamp_log_scaling if to_end else 3.0
     assert torch.allclose(s[:, 3:], torch.full_like(s[:, 3:], expected))
+
+
+@pytest.mark.parametrize("quirk", [False, True])
+def test_reference_skip_update_quirk(quirk):
+    """With densify.reference_skip_update the per-anchor parameters get no update at the
+    iterations that grow and prune (the reference replaces them before its optimizer step);
+    the networks' gradients and every other iteration are untouched."""
+    cfg = _cfg(**{"model.voxel_size": 1.0, "model.n_offsets": 2,
+                  "densify.reference_skip_update": str(quirk).lower()})
+    model = _model(cfg, torch.tensor([[0.0, 0, 0], [3, 0, 0], [6, 0, 0]]))
+    trainer = SimpleNamespace(cfg=cfg, model=model, optimizer=None, voxel_size=1.0,
+                              generator=torch.Generator().manual_seed(0),
+                              on_anchors_changed=lambda a, b: None)
+    hook = ScaffoldDensify(trainer)
+    net = next(model.decoder.parameters())
+    ctx = {"gaussians": SimpleNamespace(visible=torch.ones(3, dtype=torch.bool),
+                                        opacity_all=torch.zeros(3, 2)),
+           "render": SimpleNamespace(means2d=SimpleNamespace(grad=None)), "camera": None}
+    adjusting = hook.update_from + hook.interval - hook.update_from % hook.interval
+    assert hook.adjusts(adjusting) and not hook.adjusts(adjusting + 1)
+    assert not hook.adjusts(hook.skip[0])
+    for it in (adjusting, adjusting + 1, hook.skip[0]):
+        trained = [p for p in model.per_anchor.values() if p.requires_grad]
+        for p in trained + [net]:
+            p.grad = torch.ones_like(p)
+        hook.after_backward(it, ctx)
+        dropped = quirk and it == adjusting
+        assert all((p.grad is None) == dropped for p in trained), it
+        assert net.grad is not None

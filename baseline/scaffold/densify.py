@@ -149,6 +149,13 @@ class ScaffoldDensify:
     def after_backward(self, it: int, ctx) -> None:
         if not (self.stat_from < it < self.update_until):
             return
+        if self.t.cfg.densify.reference_skip_update and self.adjusts(it):
+            # The reference's order: it grows and prunes before its optimizer step, replacing
+            # every per-anchor parameter by a new tensor without a gradient, so at each
+            # adjustment Adam leaves the anchors' values (and moments) as they are and updates
+            # only the networks. Dropping their gradients here, before this step, does the same.
+            for p in self.t.model.per_anchor.values():
+                p.grad = None
         g, out, cam = ctx["gaussians"], ctx["render"], ctx["camera"]
         K = self.t.model.n_offsets
         with torch.no_grad():
@@ -167,17 +174,19 @@ class ScaffoldDensify:
             self.grad_accum.index_add_(0, kept[upd], gn[upd])
             self.grad_denom.index_add_(0, kept[upd], torch.ones(int(upd.sum()), device=gn.device))
 
+    def adjusts(self, it: int) -> bool:
+        """Whether iteration ``it`` grows and prunes (after its optimizer step)."""
+        return (it % self.interval == 0 and self.update_from < it < self.update_until
+                and not self.skip[0] <= it < self.skip[1])
+
     def after_step(self, it: int) -> None:
         if it % self.interval != 0:
             return
         if it >= self.update_until and self.t.cfg.densify.clamp_scaling_to_end:
             self.clamp_scaling()
             return
-        if not (self.update_from < it < self.update_until):
-            return
-        if self.skip[0] <= it < self.skip[1]:
-            return
-        self.adjust(it)
+        if self.adjusts(it):
+            self.adjust(it)
 
     def clamp_scaling(self) -> None:
         """The reference's clamp of the scale multipliers: log-scaling[:, 3:] <= c (c < 0: off)."""
