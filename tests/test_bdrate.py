@@ -84,3 +84,13 @@ def test_overlap_is_the_common_interval_and_its_share_of_the_narrower_span():
     assert overlap([30, 31], [29, 35]) == pytest.approx((30.0, 31.0, 1.0))   # one inside the other
     assert overlap([30, 31], [32, 33])[2] == 0.0                           # disjoint
     assert overlap([30, 31, 32], [32, 33, 34])[2] == 0.0                   # touching only
+
+
+def test_non_monotone_names_points_without_more_psnr_than_a_smaller_one():
+    from baseline.eval.bdrate import non_monotone
+
+    assert non_monotone([1, 2, 3], [30, 31, 32]) == []
+    assert non_monotone([3, 1, 2], [32, 30, 31]) == []                      # order given
+    # truck HAC seed 0 at 6k: 0.002 and 0.001 below the 0.004 point
+    assert non_monotone([4.010, 4.652, 5.274], [26.375, 26.352, 26.355]) == [1, 2]
+    assert non_monotone([1, 2, 3], [30, 30, 31]) == [1]                     # equal counts

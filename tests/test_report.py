@@ -441,3 +441,15 @@ def test_a_thin_psnr_overlap_is_shown_and_named_in_the_verdict():
     line = next(l for l in verdict_lines(res) if l.startswith("Predict-GS is"))
     assert "thin overlap" in line and "26.70-27.00 dB" in line
     assert "(16%, thin)" in format_report(res)
+
+
+def test_a_curve_that_does_not_rise_with_size_is_named():
+    res = stored_results()
+    assert not any(b["non_monotone"] for b in compute_bd(res))
+    low = next(r for r in res["runs"] if r["method"] == "baseline" and r["lmbda"] == 0.002)
+    low["psnr"] = 25.0                       # more bytes than the 0.004 point, less PSNR
+    b = {b["method"]: b for b in compute_bd(res)}["predict-gs"]
+    assert b["non_monotone"] and "baseline's curve does not rise" in b["note"]
+    assert "25.000 dB" in b["note"]
+    line = next(l for l in verdict_lines(res) if l.startswith("Predict-GS"))
+    assert "does not rise with size" in line

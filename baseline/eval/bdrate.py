@@ -88,3 +88,19 @@ def overlap(a, b) -> tuple[float, float, float]:
     span = min(a.max() - a.min(), b.max() - b.min())
     share = 0.0 if not hi > lo else (1.0 if not span > 0 else float((hi - lo) / span))
     return float(lo), float(hi), share
+
+
+def non_monotone(rate, psnr) -> list[int]:
+    """Indices (into the given order) of the points that have more rate but no more PSNR than a
+    point of lower rate on the same curve. A rate-distortion curve rises with rate; where it
+    does not, the points differ by less than their noise (seeds, a saturated schedule), and a
+    delta that interpolates through them measures that noise."""
+    r = np.asarray(rate, dtype=np.float64)
+    d = np.asarray(psnr, dtype=np.float64)
+    order = np.argsort(r, kind="stable")
+    best, out = -np.inf, []
+    for i in order:
+        if d[i] <= best:
+            out.append(int(i))
+        best = max(best, d[i])
+    return sorted(out)

@@ -23,7 +23,7 @@ import math
 from pathlib import Path
 from typing import Callable, Optional
 
-from baseline.eval.bdrate import BDError, bd_psnr, bd_rate, overlap
+from baseline.eval.bdrate import BDError, bd_psnr, bd_rate, non_monotone, overlap
 from baseline.fileio import write_text_atomic
 
 MB = 2 ** 20
@@ -181,6 +181,14 @@ def _bd_item(method: str, seed, base: list[dict], rs: list[dict]) -> dict:
     lo, hi, share = overlap(args[1], args[3])
     item["psnr_overlap"] = [lo, hi, share] if share > 0 else None
     notes = []
+    for who, pts in (("the baseline's", base), ("its", rs)):
+        bad = non_monotone([p["mb"] for p in pts], [p["psnr"] for p in pts])
+        if bad:
+            which = ", ".join(f"{pts[i]['psnr']:.3f} dB at {pts[i]['mb']:.3f} MB" for i in bad)
+            notes.append(f"{who} curve does not rise with size ({which}: no more PSNR than a "
+                         f"smaller point); the delta runs through points that differ by less "
+                         f"than their noise")
+    item["non_monotone"] = bool(notes)
     for key, fn in (("bd_rate", bd_rate), ("bd_psnr", bd_psnr)):
         try:
             item[key] = fn(*args)
@@ -601,12 +609,19 @@ def _overlap_cell(b: dict) -> str:
 
 
 def thin_overlap_note(b: dict) -> str:
-    """'' or the verdict's caveat when the BD-rate's PSNR overlap is thin."""
-    ov = b.get("psnr_overlap")
-    if b.get("bd_rate") is None or not ov or ov[2] >= BD_THIN_OVERLAP:
+    """'' or the verdict's caveats: the BD-rate's PSNR overlap is thin, a curve does not rise
+    with size."""
+    if b.get("bd_rate") is None:
         return ""
-    return (f"; over {ov[0]:.2f}-{ov[1]:.2f} dB only, {ov[2]:.0%} of the narrower curve's PSNR "
-            f"span: a thin overlap, more rate points where the curves meet make it a measurement")
+    out = ""
+    ov = b.get("psnr_overlap")
+    if ov and ov[2] < BD_THIN_OVERLAP:
+        out += (f"; over {ov[0]:.2f}-{ov[1]:.2f} dB only, {ov[2]:.0%} of the narrower curve's "
+                f"PSNR span: a thin overlap, more rate points where the curves meet make it a "
+                f"measurement")
+    if b.get("non_monotone"):
+        out += "; a curve does not rise with size (see the BD table's note)"
+    return out
 
 
 def bd_table(results: dict) -> Table:
