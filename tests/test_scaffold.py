@@ -203,18 +203,22 @@ def test_pruning_and_scaling_clamp():
     assert interval == max(10, cfg.train.at(cfg.densify.update_interval))
 
 
+def _three_anchor_hook(key: str, value: bool):
+    """Three anchors, K = 2, and their densify hook, with config ``key`` set to ``value``."""
+    cfg = _cfg(**{"model.voxel_size": 1.0, "model.n_offsets": 2, key: str(value).lower()})
+    model = _model(cfg, torch.tensor([[0.0, 0, 0], [3, 0, 0], [6, 0, 0]]))
+    trainer = SimpleNamespace(cfg=cfg, model=model, optimizer=None, voxel_size=1.0,
+                              generator=torch.Generator().manual_seed(0),
+                              on_anchors_changed=lambda a, b: None)
+    return cfg, model, ScaffoldDensify(trainer)
+
+
 @pytest.mark.parametrize("to_end", [False, True])
 def test_scaling_clamp_after_the_adjustments_only_when_asked(to_end):
     """After update_until the reference stops clamping the scale multipliers (nothing adjusts
     anchors any more); ``densify.clamp_scaling_to_end`` keeps the clamp every update_interval to
     the end of training, without growing or pruning anything."""
-    cfg = _cfg(**{"model.voxel_size": 1.0, "model.n_offsets": 2,
-                  "densify.clamp_scaling_to_end": str(to_end).lower()})
-    model = _model(cfg, torch.tensor([[0.0, 0, 0], [3, 0, 0], [6, 0, 0]]))
-    trainer = SimpleNamespace(cfg=cfg, model=model, optimizer=None, voxel_size=1.0,
-                              generator=torch.Generator().manual_seed(0),
-                              on_anchors_changed=lambda a, b: None)
-    hook = ScaffoldDensify(trainer)
+    cfg, model, hook = _three_anchor_hook("densify.clamp_scaling_to_end", to_end)
     with torch.no_grad():
         model.per_anchor["scaling"][:, :3] = 2.0
         model.per_anchor["scaling"][:, 3:] = 3.0
@@ -233,13 +237,7 @@ def test_reference_skip_update_quirk(quirk):
     """With densify.reference_skip_update the per-anchor parameters get no update at the
     iterations that grow and prune (the reference replaces them before its optimizer step);
     the networks' gradients and every other iteration are untouched."""
-    cfg = _cfg(**{"model.voxel_size": 1.0, "model.n_offsets": 2,
-                  "densify.reference_skip_update": str(quirk).lower()})
-    model = _model(cfg, torch.tensor([[0.0, 0, 0], [3, 0, 0], [6, 0, 0]]))
-    trainer = SimpleNamespace(cfg=cfg, model=model, optimizer=None, voxel_size=1.0,
-                              generator=torch.Generator().manual_seed(0),
-                              on_anchors_changed=lambda a, b: None)
-    hook = ScaffoldDensify(trainer)
+    cfg, model, hook = _three_anchor_hook("densify.reference_skip_update", quirk)
     net = next(model.decoder.parameters())
     ctx = {"gaussians": SimpleNamespace(visible=torch.ones(3, dtype=torch.bool),
                                         opacity_all=torch.zeros(3, 2)),
