@@ -77,11 +77,11 @@ def test_bad_curves_are_refused():
         bd_psnr([0, 2, 3], [30, 31, 32], [1, 2, 3], [30, 31, 32])
 
 
-def test_overlap_is_the_common_interval_and_its_share_of_the_narrower_span():
+def test_overlap_is_the_common_interval_and_its_share_of_the_wider_span():
     from baseline.eval.bdrate import overlap
 
-    assert overlap([30, 32, 34], [31, 33, 35, 40]) == pytest.approx((31.0, 34.0, 0.75))
-    assert overlap([30, 31], [29, 35]) == pytest.approx((30.0, 31.0, 1.0))   # one inside the other
+    assert overlap([30, 32, 34], [31, 33, 35, 40]) == pytest.approx((31.0, 34.0, 3.0 / 9.0))
+    assert overlap([30, 31], [29, 35]) == pytest.approx((30.0, 31.0, 1.0 / 6.0))   # one inside the other
     assert overlap([30, 31], [32, 33])[2] == 0.0                           # disjoint
     assert overlap([30, 31, 32], [32, 33, 34])[2] == 0.0                   # touching only
 

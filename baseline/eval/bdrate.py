@@ -79,13 +79,14 @@ def bd_psnr(rate_a, psnr_a, rate_b, psnr_b) -> float:
 
 def overlap(a, b) -> tuple[float, float, float]:
     """The interval both curves cover along one axis (PSNR for BD-rate, log10 rate for BD-PSNR)
-    and the share of the narrower curve's span it is: ``(lo, hi, share)``, share 0 when the
+    and the share of the wider curve's span it is: ``(lo, hi, share)``, share 0 when the
     curves do not overlap. A Bjontegaard delta integrates over this interval only, so a small
-    share means the delta describes a sliver of the curves (JCT-VC's reports flag it too)."""
+    share means the delta describes a sliver of the comparison (a flat curve's narrow span
+    inside a steep one's is such a sliver too)."""
     a = np.asarray(a, dtype=np.float64)
     b = np.asarray(b, dtype=np.float64)
     lo, hi = max(a.min(), b.min()), min(a.max(), b.max())
-    span = min(a.max() - a.min(), b.max() - b.min())
+    span = max(a.max() - a.min(), b.max() - b.min())
     share = 0.0 if not hi > lo else (1.0 if not span > 0 else float((hi - lo) / span))
     return float(lo), float(hi), share
 

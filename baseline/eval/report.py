@@ -30,7 +30,7 @@ MB = 2 ** 20
 GROUP_ORDER = ["feature", "anchor", "scaling", "offsets", "masks", "hash", "mlps", "header+framing"]
 BD_MIN_POINTS = 3
 # A Bjontegaard delta integrates over the PSNR interval both curves cover; below this share of
-# the narrower curve's PSNR span the report calls the overlap thin (the delta then describes a
+# the wider curve's PSNR span the report calls the overlap thin (the delta then describes a
 # sliver of the curves, and one point moves it far)
 BD_THIN_OVERLAP = 1.0 / 3.0
 
@@ -616,7 +616,7 @@ def thin_overlap_note(b: dict) -> str:
     out = ""
     ov = b.get("psnr_overlap")
     if ov and ov[2] < BD_THIN_OVERLAP:
-        out += (f"; over {ov[0]:.2f}-{ov[1]:.2f} dB only, {ov[2]:.0%} of the narrower curve's "
+        out += (f"; over {ov[0]:.2f}-{ov[1]:.2f} dB only, {ov[2]:.0%} of the wider curve's "
                 f"PSNR span: a thin overlap, more rate points where the curves meet make it a "
                 f"measurement")
     if b.get("non_monotone"):
@@ -643,7 +643,7 @@ def bd_table(results: dict) -> Table:
                     "and PSNR vs log10(size) (BD-PSNR), integrated over the overlapping "
                     "interval; size = file MB. Negative BD-rate = fewer bytes at equal PSNR. "
                     "PSNR overlap: the interval the BD-rate integrates over and its share of the "
-                    "narrower curve's PSNR span (thin below "
+                    "wider curve's PSNR span (thin below "
                     f"{BD_THIN_OVERLAP:.0%}: the delta then describes a sliver of the curves). "
                     "This, not a pair of runs at one lambda, is the rate-distortion comparison: "
                     "lambda only moves each method along its own curve."]
