@@ -79,10 +79,7 @@ def main() -> None:
         with torch.no_grad():
             for cam in cams:
                 idx = visible_anchors(model, cam)
-                xyz = baked.xyz[idx]
-                view = xyz - cam.center.to(xyz)[None, :]
-                dist = view.norm(dim=1, keepdim=True).clamp_min(1e-8)
-                hid = baked.P[idx].addmm_(torch.cat([view / dist, dist], 1), baked.Wv).relu_()
+                _, hid = baked.hidden(cam.center, idx)
                 raw_op = baked._second("opacity", hid)
                 keep = ((raw_op > 0) & baked.gmask[idx]).reshape(-1).nonzero()[:, 0]
                 inputs.append((hid, keep))

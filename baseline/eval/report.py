@@ -608,7 +608,7 @@ def _overlap_cell(b: dict) -> str:
     return f"{lo:.2f}-{hi:.2f} dB ({share:.0%}{', thin' if share < BD_THIN_OVERLAP else ''})"
 
 
-def thin_overlap_note(b: dict) -> str:
+def bd_caveats(b: dict) -> str:
     """'' or the verdict's caveats: the BD-rate's PSNR overlap is thin, a curve does not rise
     with size."""
     if b.get("bd_rate") is None:
@@ -858,7 +858,7 @@ def verdict_lines(results: dict) -> list[str]:
         if b is not None and b["bd_rate"] is not None:
             r = b["bd_rate"]
             lines.append(f"{name} is {abs(r):.1f}% {'smaller' if r < 0 else 'larger'} than {bname} "
-                         f"at equal quality (BD-rate {r:+.2f}%, {curve}{thin_overlap_note(b)})")
+                         f"at equal quality (BD-rate {r:+.2f}%, {curve}{bd_caveats(b)})")
         elif b is not None:
             lines.append(f"{name} vs {bname}: no BD-rate ({b['note'] or 'curves do not overlap'})")
         if b is not None and b["bd_psnr"] is not None:

@@ -173,17 +173,23 @@ class BakedDecoder:
         return torch.addmm(s.bias, hid[:, s.lo:s.hi], s.weight)
 
     @torch.no_grad()
+    def hidden(self, cam_center: torch.Tensor, idx: torch.Tensor):
+        """Anchors ``idx`` [M] seen from ``cam_center`` [3]: their positions [M, 3] and every
+        head's hidden units after the ReLU [M, H] (the first layers of all heads)."""
+        xyz = self.xyz[idx]
+        view = xyz - cam_center.to(xyz)[None, :]
+        dist = view.norm(dim=1, keepdim=True).clamp_min(1e-8)
+        vd = torch.cat([view / dist, dist], dim=1)                         # [M, 4]
+        return xyz, self.P[idx].addmm_(vd, self.Wv).relu_()                # [M, H]
+
+    @torch.no_grad()
     def decode(self, cam_center: torch.Tensor, idx: torch.Tensor,
                visible: Optional[torch.Tensor] = None):
         """Neural Gaussians of anchors ``idx`` [M] seen from ``cam_center`` [3] (a
         :class:`~baseline.scaffold.model.Gaussians`, ``opacity_all`` None)."""
         K = self.n_offsets
         M = len(idx)
-        xyz = self.xyz[idx]
-        view = xyz - cam_center.to(xyz)[None, :]
-        dist = view.norm(dim=1, keepdim=True).clamp_min(1e-8)
-        vd = torch.cat([view / dist, dist], dim=1)                         # [M, 4]
-        hid = self.P[idx].addmm_(vd, self.Wv).relu_()                      # [M, H]
+        xyz, hid = self.hidden(cam_center, idx)
         raw_op = self._second("opacity", hid)                              # [M, K]
         # tanh(x) * mask > 0  <=>  x > 0 and mask on
         sel = ((raw_op > 0) & self.gmask[idx]).reshape(-1)                 # [M*K]
