@@ -370,7 +370,8 @@ def cmd_compare(args) -> int:
                               plots=not args.no_plots, only=args.only, remeasure=args.remeasure,
                               report_only=args.report_only, reference=args.reference,
                               codec=args.codec, seeds=args.seeds,
-                              panel_views=args.panel_views, paired_fps=args.paired_fps)
+                              panel_views=args.panel_views, paired_fps=args.paired_fps,
+                              lambda_for=args.lambda_for)
     except KeyboardInterrupt:
         print(f"\ninterrupted: finished stages are kept in {args.out}; run the same command "
               f"again to resume", file=sys.stderr)
@@ -671,6 +672,11 @@ def main(argv=None) -> int:
     p.add_argument("--lambda", dest="lambdas", type=float, nargs="+", action="extend",
                    default=None, metavar="L", help="rate points (entropy.lmbda); default: the "
                    "config's own; >= 3 give BD-rate / BD-PSNR")
+    p.add_argument("--lambda-for", action="append", nargs="+", default=None,
+                   metavar="METHOD L", help="one method's rate points in place of --lambda "
+                   "(METHOD as for --only; repeat per method): where the curves meet, without "
+                   "training every method at every lambda, e.g. --lambda-for HAC 0.008 0.004 "
+                   "0.002 0.001")
     p.add_argument("--paired-fps", action="store_true",
                    help="time each contender's decoded file against the baseline's in one process "
                         "(middle rate point, lowest seed, 3 rounds, 1 thread) for the verdict's "

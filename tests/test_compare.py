@@ -13,7 +13,8 @@ from baseline.codec.model_codec import file_info
 from baseline.config import ConfigError
 from baseline.data.synthetic import make_scene
 from baseline.eval.compare import (BASELINE, MODEL_FILE, RECORD, RECORD_FILES, archive_records,
-                                   is_finished, parse_methods, plan_runs, run_compare)
+                                   is_finished, parse_methods, plan_runs, run_compare,
+                                   with_own_lambdas)
 from baseline.train.trainer import CHECKPOINT_NAME, Trainer
 
 ITERS = 24
@@ -52,6 +53,46 @@ def test_methods_and_plan(tmp_path):
     assert [s.lmbda for s in own] == [0.004, 0.0005]
     with pytest.raises(ConfigError, match="unknown patch"):
         plan_runs(tmp_path, parse_methods(["no-such-patch"]), None, [], SETS)
+
+
+def test_lambda_for_gives_one_method_its_own_rate_points(scene, tmp_path, capsys):
+    ms = with_own_lambdas(parse_methods(["predict-gs"]),
+                          [["HAC", "0.008", "0.004"], ["predict-gs", "0.004", "0.0005"]], ["demo"])
+    specs = plan_runs(tmp_path, ms, [0.002], ["demo"], SETS)
+    assert [(s.method.name, s.lmbda) for s in specs] == \
+        [(BASELINE, 0.008), (BASELINE, 0.004), ("predict-gs", 0.004), ("predict-gs", 0.0005)]
+    assert [s.cfg.entropy.lmbda for s in specs] == [0.008, 0.004, 0.004, 0.0005]
+    # a run at a lambda both methods share is the same run (same folder) with or without it
+    plain = plan_runs(tmp_path, parse_methods(["predict-gs"]), [0.004], ["demo"], SETS)
+    assert {s.dir for s in plain} <= {s.dir for s in specs}
+    # a method not named keeps --lambda
+    ms = with_own_lambdas(parse_methods(["predict-gs"]), [["Predict-GS", "0.0005"]], ["demo"])
+    assert [(s.method.name, s.lmbda) for s in plan_runs(tmp_path, ms, [0.002, 0.001], ["demo"],
+                                                        SETS)] == \
+        [(BASELINE, 0.002), (BASELINE, 0.001), ("predict-gs", 0.0005)]
+    for bad, msg in (([["HACK", "0.1"]], "not a method of this comparison"),
+                     ([["HAC", "0.1"], ["baseline", "0.2"]], "twice"),
+                     ([["HAC", "x"]], "must be numbers"),
+                     ([["HAC", "0.1", "0.1"]], "distinct positive"),
+                     ([["HAC", "-0.1"]], "distinct positive"),
+                     ([["HAC"]], "one or more lambdas")):
+        with pytest.raises(ValueError, match=msg):
+            with_own_lambdas(parse_methods(["predict-gs"]), bad, ["demo"])
+    # through the CLI: --report-only lists exactly the planned runs as not run yet
+    from baseline.cli import main
+
+    out = tmp_path / "cmp"
+    assert main(["compare", str(scene), "--patch", "demo", "--out", str(out), "--no-progress",
+                 "--no-plots", "--vs", "predict-gs", "--lambda", "0.002", "--report-only",
+                 "--lambda-for", "HAC", "0.008", "0.004",
+                 *[a for s in SETS for a in ("--set", s)]]) == 0
+    res = json.loads((out / "results.json").read_text())
+    assert len(res["missing"]) == 3 and res["runs"] == []
+    assert sum("lambda=0.008" in m for m in res["missing"]) == 1
+    assert sum("lambda=0.002" in m for m in res["missing"]) == 1       # Predict-GS's
+    assert res["methods"][0] == {"name": BASELINE, "patches": [], "lambdas": [0.008, 0.004]}
+    assert "lambdas" not in res["methods"][1]
+    assert "1/2 rate point(s)" in capsys.readouterr().out
 
 
 def _mtimes(d: Path) -> dict:

@@ -59,6 +59,7 @@ MB = 2 ** 20
 class Method:
     name: str                   # "baseline" or the contender's patches joined by "+"
     patches: tuple[str, ...]    # on top of the common patches
+    lambdas: Optional[tuple[float, ...]] = None     # its own rate points (``--lambda-for``)
 
 
 @dataclass
@@ -103,6 +104,49 @@ def parse_methods(vs: list[str]) -> list[Method]:
     return methods
 
 
+def resolve_method(flag: str, name: str, methods: list[Method], common_patches=(),
+                   extra: tuple[str, ...] = ()) -> str:
+    """A method named on the command line -> its ``Method.name``: ``baseline``, a ``--vs``
+    value, or its name in the report (``HAC``, ``Predict-GS``; :func:`method_label`)."""
+    from baseline.eval.report import method_label
+
+    by_label = {method_label(m.name, common_patches): m.name for m in methods}
+    got = by_label.get(name, name)
+    names = [m.name for m in methods] + list(extra)
+    if got not in names:
+        raise ValueError(f"{flag} {name}: not a method of this comparison "
+                         f"(methods: {', '.join(names)})")
+    return got
+
+
+def with_own_lambdas(methods: list[Method], lambda_for: Optional[list[list]],
+                     common_patches=()) -> list[Method]:
+    """Apply ``--lambda-for METHOD L [L ...]`` (a list of ``[METHOD, L, ...]``): that method's
+    rate points replace ``--lambda`` for it. Methods reach different rates at the same lambda,
+    so the points where two curves meet (what BD-rate integrates over) may need a lambda only
+    one of them is trained at; training the other there too would cost runs that measure
+    nothing."""
+    own: dict[str, tuple[float, ...]] = {}
+    for item in lambda_for or []:
+        if len(item) < 2:
+            raise ValueError(f"--lambda-for {' '.join(map(str, item))}: expected a method and "
+                             f"one or more lambdas")
+        name = resolve_method("--lambda-for", str(item[0]), methods, common_patches)
+        try:
+            lams = tuple(float(x) for x in item[1:])
+        except ValueError:
+            raise ValueError(f"--lambda-for {' '.join(map(str, item))}: lambdas must be "
+                             f"numbers") from None
+        if name in own:
+            raise ValueError(f"--lambda-for names method '{item[0]}' twice")
+        if len(set(lams)) != len(lams) or min(lams) <= 0:
+            raise ValueError(f"--lambda-for {item[0]}: expected distinct positive lambdas, "
+                             f"got {list(lams)}")
+        own[name] = lams
+    return [dataclasses.replace(m, lambdas=own[m.name]) if m.name in own else m
+            for m in methods]
+
+
 def _safe(name: str) -> str:
     return re.sub(r"[^A-Za-z0-9_.+-]", "_", name)
 
@@ -112,7 +156,8 @@ def plan_runs(out: str | Path, methods: list[Method], lambdas: Optional[list[flo
               seeds: Optional[list[int]] = None) -> list[RunSpec]:
     """Build every run's config up front (bad patches / keys fail before any training).
 
-    With ``lambdas`` None each method runs once at its config's own ``entropy.lmbda``.
+    With ``lambdas`` None each method runs once at its config's own ``entropy.lmbda``; a method
+    with rate points of its own (``Method.lambdas``) runs at those instead.
     ``seeds``: each rate point is trained once per ``train.seed`` (folders
     ``<method>-l<lambda>-s<seed>-<hash>``), in the order method, seed, lambda, so that one seed's
     whole curve finishes before the next seed starts.
@@ -127,10 +172,11 @@ def plan_runs(out: str | Path, methods: list[Method], lambdas: Optional[list[flo
         patches = list(common_patches) + list(m.patches)
         for seed in (seeds if seeds is not None else [None]):
             extra = [] if seed is None else [f"train.seed={seed}"]
-            if lambdas:
+            lams = m.lambdas or lambdas
+            if lams:
                 cfgs = [(float(lm), build_config(patches, list(sets) + extra
                                                  + [f"entropy.lmbda={float(lm)!r}"]))
-                        for lm in lambdas]
+                        for lm in lams]
             else:
                 cfg = build_config(patches, list(sets) + extra)
                 cfgs = [(float(cfg.entropy.lmbda), cfg)]
@@ -657,7 +703,7 @@ def run_compare(scene: str | Path, out: str | Path, vs: list[str] = (),
                 report_only: bool = False, reference: Optional[str] = None,
                 codec: Optional[str] = None, seeds: Optional[list[int]] = None,
                 panel_views: Optional[list[int]] = None, paired_fps: bool = False,
-                scope: Optional[str] = None) -> dict:
+                scope: Optional[str] = None, lambda_for: Optional[list[list]] = None) -> dict:
     """Run (or resume) a comparison; write ``out/results.json``, ``out/report.md`` and plots.
 
     ``only``: bring only the runs of these methods (``baseline``, a ``--vs`` value, or a name as
@@ -679,6 +725,8 @@ def run_compare(scene: str | Path, out: str | Path, vs: list[str] = (),
     point's seed mean and spread, and BD-rate per seed and on the seed-mean curves.
     ``panel_views``: test views drawn in the report's panels (render, error map, bit map per
     method; default ``[0]``, ``[]`` for none).
+    ``lambda_for``: ``[[METHOD, L, ...], ...]``, rate points of one method in place of
+    ``lambdas`` (:func:`with_own_lambdas`).
     """
     from baseline.eval.metrics import load_lpips
     from baseline.eval.report import format_report, write_report
@@ -693,21 +741,16 @@ def run_compare(scene: str | Path, out: str | Path, vs: list[str] = (),
     methods = parse_methods(list(vs))
     if lambdas is not None and len(set(lambdas)) != len(lambdas):
         raise ValueError(f"--lambda lists a value twice: {lambdas}")
+    methods = with_own_lambdas(methods, lambda_for, common_patches)
     codec_over = codec_overrides(codec)
     specs = plan_runs(out, methods, lambdas, list(common_patches), list(sets), seeds)
     ref_method = parse_reference(reference)
     ref_spec = (plan_reference(out, ref_method, list(common_patches), list(sets))
                 if ref_method is not None else None)
     if only:
-        from baseline.eval.report import method_label
-
-        names = [m.name for m in methods] + ([REFERENCE] if ref_spec is not None else [])
-        by_label = {method_label(m.name, common_patches): m.name for m in methods}
-        only = [by_label.get(o, o) for o in only]          # "HAC" = "baseline", ...
-        unknown = [o for o in only if o not in names]
-        if unknown:
-            raise ValueError(f"--only {', '.join(unknown)}: not a method of this comparison "
-                             f"(methods: {', '.join(names)})")
+        extra = (REFERENCE,) if ref_spec is not None else ()
+        only = [resolve_method("--only", o, methods, common_patches, extra)   # "HAC" = "baseline"
+                for o in only]
         specs = [s for s in specs if s.method.name in only]
         methods = [m for m in methods if m.name in only]
     lpips_fn, lpips_reason = load_lpips(lpips_weights)
@@ -726,7 +769,8 @@ def run_compare(scene: str | Path, out: str | Path, vs: list[str] = (),
         "format": RESULTS_FORMAT,
         "scene": scene_path,
         "baseline": BASELINE,
-        "methods": [{"name": m.name, "patches": list(m.patches)} for m in methods],
+        "methods": [{"name": m.name, "patches": list(m.patches)}
+                    | ({"lambdas": list(m.lambdas)} if m.lambdas else {}) for m in methods],
         "common_patches": list(common_patches),
         "sets": list(sets),
         "lambdas": None if lambdas is None else [float(x) for x in lambdas],
@@ -745,9 +789,10 @@ def run_compare(scene: str | Path, out: str | Path, vs: list[str] = (),
     finished = [is_finished(s, lp_id, codec_over) for s in specs]   # reads each run's records once
     n_done = 0 if remeasure else sum(finished)
     if echo and methods:
-        per = len(specs) // len(methods)
-        what = (f"{per // len(seeds)} rate point(s) x {len(seeds)} seed(s)" if seeds
-                else f"{per} rate point(s)")
+        per = sorted({sum(s.method.name == m.name for s in specs) for m in methods})
+        per_txt = "/".join(str(n // len(seeds) if seeds else n) for n in per)
+        what = (f"{per_txt} rate point(s) x {len(seeds)} seed(s)" if seeds
+                else f"{per_txt} rate point(s)")
         ref_txt = (f" + the uncompressed reference ({ref_method.name})"
                    if ref_spec is not None and (not only or REFERENCE in only) else "")
         print(f"compare: {len(methods)} method(s) x {what} = "
