@@ -453,3 +453,39 @@ def test_a_curve_that_does_not_rise_with_size_is_named():
     assert "25.000 dB" in b["note"]
     line = next(l for l in verdict_lines(res) if l.startswith("Predict-GS"))
     assert "does not rise with size" in line
+
+
+def test_methods_with_rate_points_of_their_own():
+    """``--lambda-for``: the baseline has a point at a lambda the contender lacks and the other
+    way round; each curve uses all of its points, equal-lambda pairs only the shared ones."""
+    from baseline.eval.report import seed_mean_points
+
+    res = seeded_results()
+    extra = []
+    for r in res["runs"]:
+        if r["lmbda"] == 0.004 and r["method"] == "baseline":        # a lower-rate HAC point
+            q = dict(r, lmbda=0.008, psnr=r["psnr"] - 1.0, bytes=int(r["bytes"] * 0.8))
+        elif r["lmbda"] == 0.0005 and r["method"] == "predict-gs":   # a higher-rate one
+            q = dict(r, lmbda=0.0002, psnr=r["psnr"] + 0.5, bytes=int(r["bytes"] * 1.3))
+        else:
+            continue
+        q["mb"] = q["bytes"] / MB
+        extra.append(q)
+    res["runs"] += extra
+    assert [p["lmbda"] for p in seed_mean_points(res, "baseline")] == [0.0005, 0.002, 0.004, 0.008]
+    assert [p["lmbda"] for p in seed_mean_points(res, "predict-gs")] == [0.0002] + LAMBDAS
+    bd = {b["seed"]: b for b in compute_bd(res)}
+    assert all(bd[k]["points"] == 4 and bd[k]["baseline_points"] == 4 for k in (0, 1, "mean"))
+    # the shared stretch is still 0.8x / 0.9x at equal PSNR; an extra point beyond the other
+    # curve only moves the end slopes of the piecewise cubic inside the overlap a little
+    assert bd[0]["bd_rate"] == pytest.approx(-20.0, abs=0.3)
+    assert bd[1]["bd_rate"] == pytest.approx(-10.0, abs=0.3)
+    lines = " ".join(verdict_lines(res))
+    assert "lambda 0.0005" in lines and "lambda 0.008" not in lines and "lambda 0.0002" not in lines
+    # one section table per (lambda, seed): the unshared points hold one method's run
+    pts = rate_points(res)
+    assert len(pts) == 10 and sorted(len(p) for p in pts) == [1] * 4 + [2] * 6
+    row = next(r for r in res["runs"] if r["lmbda"] == 0.0002)
+    assert baseline_partner(res, row) is None
+    text = format_report(res)
+    assert "0.008 s1" in text and "0.0002 s0" in text
