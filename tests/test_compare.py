@@ -73,11 +73,14 @@ def test_lambda_for_gives_one_method_its_own_rate_points(scene, tmp_path, capsys
     for bad, msg in (([["HACK", "0.1"]], "not a method of this comparison"),
                      ([["HAC", "0.1"], ["baseline", "0.2"]], "twice"),
                      ([["HAC", "x"]], "must be numbers"),
-                     ([["HAC", "0.1", "0.1"]], "distinct positive"),
-                     ([["HAC", "-0.1"]], "distinct positive"),
+                     ([["HAC", "0.1", "0.1"]], "lists a value twice"),
                      ([["HAC"]], "one or more lambdas")):
         with pytest.raises(ValueError, match=msg):
             with_own_lambdas(parse_methods(["predict-gs"]), bad, ["demo"])
+    # out of the config's range: refused when the runs are planned, as for --lambda
+    with pytest.raises(ConfigError, match="out of range"):
+        plan_runs(tmp_path, with_own_lambdas(parse_methods([]), [["HAC", "-0.1"]], ["demo"]),
+                  None, ["demo"], SETS)
     # through the CLI: --report-only lists exactly the planned runs as not run yet
     from baseline.cli import main
 

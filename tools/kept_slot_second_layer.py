@@ -80,8 +80,7 @@ def main() -> None:
             for cam in cams:
                 idx = visible_anchors(model, cam)
                 _, hid = baked.hidden(cam.center, idx)
-                raw_op = baked._second("opacity", hid)
-                keep = ((raw_op > 0) & baked.gmask[idx]).reshape(-1).nonzero()[:, 0]
+                keep = baked.kept(hid, idx)[1].nonzero()[:, 0]
                 inputs.append((hid, keep))
             t = {"all": [0.0] * a.rounds, "kept": [0.0] * a.rounds}
             for r in range(-1, a.rounds):

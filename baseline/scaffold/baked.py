@@ -183,6 +183,14 @@ class BakedDecoder:
         return xyz, self.P[idx].addmm_(vd, self.Wv).relu_()                # [M, H]
 
     @torch.no_grad()
+    def kept(self, hid: torch.Tensor, idx: torch.Tensor):
+        """The opacity head's pre-activations [M, K] of anchors ``idx`` from their hidden units
+        ``hid`` [M, H], and which of their M*K candidates are drawn [M*K] (bool)."""
+        raw_op = self._second("opacity", hid)
+        # tanh(x) * mask > 0  <=>  x > 0 and mask on
+        return raw_op, ((raw_op > 0) & self.gmask[idx]).reshape(-1)
+
+    @torch.no_grad()
     def decode(self, cam_center: torch.Tensor, idx: torch.Tensor,
                visible: Optional[torch.Tensor] = None):
         """Neural Gaussians of anchors ``idx`` [M] seen from ``cam_center`` [3] (a
@@ -190,9 +198,7 @@ class BakedDecoder:
         K = self.n_offsets
         M = len(idx)
         xyz, hid = self.hidden(cam_center, idx)
-        raw_op = self._second("opacity", hid)                              # [M, K]
-        # tanh(x) * mask > 0  <=>  x > 0 and mask on
-        sel = ((raw_op > 0) & self.gmask[idx]).reshape(-1)                 # [M*K]
+        raw_op, sel = self.kept(hid, idx)                                  # [M, K], [M*K]
         keep = sel.nonzero()[:, 0]                                         # [G]
         row = torch.div(keep, K, rounding_mode="floor")                    # [G]
         anchor = idx[row]
