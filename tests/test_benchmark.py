@@ -85,3 +85,29 @@ def test_a_run_that_keeps_failing_is_reported_by_name(dataset, tmp_path):
     r = LocalExecutor(retries=1, progress=False).execute([bad])
     assert r["done"] == [] and r["failed"][0][0] == "alpha: broken"
     assert "nosuch" in r["failed"][0][1]
+
+
+def test_dataset_bd_keeps_each_reference_apart():
+    """A method measured against the baseline and against a contender it extends gets one row
+    per reference (per scene and their mean), not one overwriting the other."""
+    from baseline.eval.benchmark import dataset_bd
+
+    def item(m, ref, rate, seed="mean"):
+        d = {"method": m, "seed": seed, "bd_rate": rate, "bd_psnr": 0.1}
+        if ref is not None:                    # None: a record from before references were named
+            d["against"] = ref
+        return d
+
+    per_scene = {
+        "alpha": {"baseline": "baseline", "bd": [
+            item("hacpp", None, -30.0), item("predict-gs+hacpp", "baseline", -40.0),
+            item("predict-gs+hacpp", "hacpp", -10.0), item("predict-gs+hacpp", "hacpp", 5.0, 0)]},
+        "beta": {"baseline": "baseline", "bd": [
+            item("hacpp", "baseline", -20.0), item("predict-gs+hacpp", "baseline", -30.0),
+            item("predict-gs+hacpp", "hacpp", -6.0)]}}
+    rows = {(r["method"], r["against"]): r for r in dataset_bd(per_scene)}
+    assert set(rows) == {("hacpp", "baseline"), ("predict-gs+hacpp", "baseline"),
+                         ("predict-gs+hacpp", "hacpp")}
+    assert rows[("hacpp", "baseline")]["mean_bd_rate"] == pytest.approx(-25.0)
+    assert rows[("predict-gs+hacpp", "hacpp")]["mean_bd_rate"] == pytest.approx(-8.0)
+    assert rows[("predict-gs+hacpp", "baseline")]["per_scene"]["alpha"]["bd_rate"] == -40.0

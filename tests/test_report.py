@@ -489,3 +489,41 @@ def test_methods_with_rate_points_of_their_own():
     assert baseline_partner(res, row) is None
     text = format_report(res)
     assert "0.008 s1" in text and "0.0002 s0" in text
+
+
+def test_a_method_is_also_measured_against_each_contender_it_extends(tmp_path):
+    """Predict-GS+HAC++ extends Predict-GS and HAC++: besides the baseline, the report gives its
+    BD-rate against each (what HAC++'s coding adds to Predict-GS, what Predict-GS adds on HAC++'s
+    coding); HAC++ and Predict-GS extend no contender and are measured against HAC only."""
+    base_psnr, base_bytes = [27.0, 26.2, 25.1], [10 * MB, 7 * MB, 5 * MB]
+    scale = {"baseline": 1.0, "predict-gs": 0.8, "hacpp": 0.7, "predict-gs+hacpp": 0.63}
+    runs = []
+    for lm, p, b in zip(LAMBDAS, base_psnr, base_bytes):
+        for m, k in scale.items():
+            tot = int(k * b)
+            runs.append(_row(m, lm, p, tot // 2, tot - tot // 2))
+    res = stored_results()
+    res["methods"] = [{"name": m, "patches": [] if m == "baseline" else m.split("+")}
+                      for m in scale]
+    res["runs"] = runs
+    bd = {(b["method"], b["against"]): b for b in compute_bd(res)}
+    assert set(bd) == {("predict-gs", "baseline"), ("hacpp", "baseline"),
+                       ("predict-gs+hacpp", "baseline"), ("predict-gs+hacpp", "predict-gs"),
+                       ("predict-gs+hacpp", "hacpp")}
+    assert bd[("hacpp", "baseline")]["bd_rate"] == pytest.approx(-30.0, abs=1e-3)
+    assert bd[("predict-gs+hacpp", "baseline")]["bd_rate"] == pytest.approx(-37.0, abs=1e-3)
+    assert bd[("predict-gs+hacpp", "hacpp")]["bd_rate"] == pytest.approx(-10.0, abs=1e-3)
+    assert bd[("predict-gs+hacpp", "predict-gs")]["bd_rate"] == pytest.approx(-21.25, abs=1e-3)
+    lines = verdict_lines(res)
+    assert any(l.startswith("Predict-GS+HAC++ is 10.0% smaller than HAC++ at equal quality")
+               for l in lines)
+    assert any(l.startswith("Predict-GS+HAC++ is 21.2% smaller than Predict-GS") for l in lines)
+    assert not any(l.startswith("HAC++ is") and "than Predict-GS" in l for l in lines)
+    text = format_report(res)
+    assert "and the methods each extends" in text and "against" in text
+    # records written before references were named: every item is against the baseline
+    old = dict(res, bd=[{k: v for k, v in b.items() if k != "against"}
+                        for b in compute_bd(res) if b["against"] == "baseline"])
+    assert "and the methods each extends" not in format_report(old)
+    write_report(res, tmp_path, plots=False)
+    assert "smaller than HAC++" in (tmp_path / "report.md").read_text()

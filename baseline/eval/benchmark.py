@@ -10,7 +10,8 @@ comparison report is written (``pgs compare`` reusing every run), then the datas
 
 * per method and rate point (and seed mean, with seeds) the mean over the scenes of PSNR,
   SSIM, LPIPS and size, split as the paper's Table 3 (feature vs the rest);
-* BD-rate and BD-PSNR against the baseline per scene and their mean;
+* BD-rate and BD-PSNR against the baseline (and of a method against each contender it
+  extends) per scene and their mean;
 * speed against error (training time, encode / decode time, FPS, Gaussians per view);
 * the survey CSVs, one per scene (``survey/<Dataset>/<scene>.csv``), as the 3DGS compression
   survey collects them.
@@ -171,18 +172,23 @@ def dataset_table(per_scene: dict) -> list[dict]:
 
 
 def dataset_bd(per_scene: dict) -> list[dict]:
-    """BD-rate / BD-PSNR per scene (the seed-mean curves where there are seeds) and the mean."""
+    """BD-rate / BD-PSNR per scene (the seed-mean curves where there are seeds) and the mean, per
+    method and reference (the baseline, or a contender the method extends)."""
+    from baseline.eval.report import bd_against
+
     out: dict = {}
     for scene, res in per_scene.items():
         for b in res.get("bd") or []:
             if b.get("seed") not in (None, "mean"):
                 continue
-            out.setdefault(b["method"], {})[scene] = (b["bd_rate"], b["bd_psnr"])
+            key = (b["method"], bd_against(res, b))
+            out.setdefault(key, {})[scene] = (b["bd_rate"], b["bd_psnr"])
     rows = []
-    for m, by in out.items():
+    for (m, ref), by in out.items():
         rates = [v[0] for v in by.values() if v[0] is not None]
         psnrs = [v[1] for v in by.values() if v[1] is not None]
-        rows.append({"method": m, "per_scene": {s: {"bd_rate": v[0], "bd_psnr": v[1]}
+        rows.append({"method": m, "against": ref,
+                     "per_scene": {s: {"bd_rate": v[0], "bd_psnr": v[1]}
                                                 for s, v in by.items()},
                      "mean_bd_rate": statistics.fmean(rates) if len(rates) == len(by) and rates
                      else None,
@@ -219,7 +225,8 @@ def format_benchmark(res: dict, markdown: bool = True) -> str:
     bd_head = ["method"] + list(res["scenes"]) + ["mean"]
     bd_rows = []
     for b in res["bd"]:
-        cells = [name(b["method"])]
+        ref = b.get("against", "baseline")
+        cells = [name(b["method"]) + ("" if ref == "baseline" else f" vs {name(ref)}")]
         for s in res["scenes"]:
             v = b["per_scene"].get(s)
             cells.append("-" if not v or v["bd_rate"] is None else
@@ -244,8 +251,9 @@ def format_benchmark(res: dict, markdown: bool = True) -> str:
              f"its folder; means below are over the scenes (within a scene, over its seeds).",
              ("## " if markdown else "") + "Mean over the scenes (as the paper's Tables 1 and 3)",
              table(head, rows),
-             ("## " if markdown else "") + "BD-rate against the baseline (seed-mean curves; "
-             "negative = fewer bytes at equal PSNR)",
+             ("## " if markdown else "") + "BD-rate against the baseline, and of a method that "
+             "extends another contender against it (\"vs\"; seed-mean curves; negative = fewer "
+             "bytes at equal PSNR)",
              table(bd_head, bd_rows) if any(any(c != "-" for c in r[1:]) for r in bd_rows)
              else "BD-rate needs at least 3 rate points (--lambda) per method.",
              f"Survey CSVs: `survey/{res['dataset']}/<scene>.csv`. Executor: {res['executor']} "

@@ -12,8 +12,8 @@ Tables:
      in percent against the baseline at the same rate point, then section by section;
   3. per coded attribute, the values coded and bits per value against the baseline's;
   4. speed against error (train time, s/it, encode, decode, FPS with / without the cache);
-  5. BD-rate / BD-PSNR against the baseline (PCHIP, :mod:`baseline.eval.bdrate`) for methods with
-     at least 3 rate points;
+  5. BD-rate / BD-PSNR against the baseline, and against each contender a method extends
+     (PCHIP, :mod:`baseline.eval.bdrate`), for methods with at least 3 rate points;
   6. the protocol (scene, resolution, split, background, iterations, threads, backend, versions).
 """
 from __future__ import annotations
@@ -168,10 +168,11 @@ def others_bytes(row: dict) -> int:
     return row["bytes"] - row["groups"].get("feature", 0)
 
 
-def _bd_item(method: str, seed, base: list[dict], rs: list[dict]) -> dict:
-    """BD-rate / BD-PSNR of points ``rs`` against ``base`` (each a dict with mb and psnr)."""
-    item = {"method": method, "seed": seed, "points": len(rs), "baseline_points": len(base),
-            "bd_rate": None, "bd_psnr": None, "note": ""}
+def _bd_item(method: str, seed, base: list[dict], rs: list[dict], against: str) -> dict:
+    """BD-rate / BD-PSNR of points ``rs`` against ``base`` (each a dict with mb and psnr), the
+    points of method ``against``."""
+    item = {"method": method, "against": against, "seed": seed, "points": len(rs),
+            "baseline_points": len(base), "bd_rate": None, "bd_psnr": None, "note": ""}
     if min(len(rs), len(base)) < BD_MIN_POINTS:
         item["note"] = (f"needs >= {BD_MIN_POINTS} rate points per method "
                         f"(have {len(rs)}, baseline {len(base)})")
@@ -198,27 +199,57 @@ def _bd_item(method: str, seed, base: list[dict], rs: list[dict]) -> dict:
     return item
 
 
-def compute_bd(results: dict) -> list[dict]:
-    """BD-rate (size in MB) and BD-PSNR (decoded PSNR) of each method against the baseline.
+def method_patches(results: dict, method: str) -> frozenset:
+    """The patches that make ``method`` (beyond the common ones): from the comparison's methods,
+    else from its id (the patches joined by "+"; "baseline" has none)."""
+    for m in results.get("methods", []):
+        if m["name"] == method:
+            return frozenset(m.get("patches") or [])
+    return frozenset() if method == results.get("baseline", "baseline") else \
+        frozenset(p for p in method.split("+") if p)
 
-    With seeds (``pgs compare --seeds``): one item per seed (the method's and the baseline's
+
+def nested_references(results: dict, method: str) -> list[str]:
+    """The contenders (not the baseline) ``method`` extends: those whose patches are a strict
+    subset of its own. Predict-GS+HAC++ extends Predict-GS and HAC++, so it is also measured
+    against each: what HAC++'s coding adds to Predict-GS, and what Predict-GS adds on HAC++'s
+    coding."""
+    base = results.get("baseline", "baseline")
+    mine = method_patches(results, method)
+    return [n for n in method_names(results) if n not in (base, method)
+            and method_patches(results, n) < mine]
+
+
+def compute_bd(results: dict) -> list[dict]:
+    """BD-rate (size in MB) and BD-PSNR (decoded PSNR) of each method against the baseline, then
+    of each method against every contender it extends (:func:`nested_references`); each item
+    names its reference in ``against``.
+
+    With seeds (``pgs compare --seeds``): one item per seed (the method's and the reference's
     runs of that seed) and one on the seed-mean curves (``seed`` = "mean": per lambda the mean
     size and PSNR over the seeds), the comparison's answer; the per-seed items show its spread.
     """
     base_name = results.get("baseline", "baseline")
     seeds = seeds_of(results)
+    names = method_names(results)
+    pairs = [(m, base_name) for m in names if m != base_name]
+    pairs += [(m, ref) for m in names if m != base_name for ref in nested_references(results, m)]
     out = []
-    for m in method_names(results):
-        if m == base_name:
-            continue
+    for m, ref in pairs:
         if not seeds:
-            out.append(_bd_item(m, None, runs_of(results, base_name), runs_of(results, m)))
+            out.append(_bd_item(m, None, runs_of(results, ref), runs_of(results, m), ref))
             continue
         for sd in seeds:
-            out.append(_bd_item(m, sd, runs_of(results, base_name, sd), runs_of(results, m, sd)))
-        out.append(_bd_item(m, "mean", seed_mean_points(results, base_name),
-                            seed_mean_points(results, m)))
+            out.append(_bd_item(m, sd, runs_of(results, ref, sd), runs_of(results, m, sd), ref))
+        out.append(_bd_item(m, "mean", seed_mean_points(results, ref),
+                            seed_mean_points(results, m), ref))
     return out
+
+
+def bd_against(results: dict, item: dict) -> str:
+    """The method a BD item measures against (records from before nested references: the
+    baseline)."""
+    return item.get("against") or results.get("baseline", "baseline")
 
 
 # ------------------------------------------------------------------------------ formatting
@@ -626,16 +657,21 @@ def bd_caveats(b: dict) -> str:
 
 def bd_table(results: dict) -> Table:
     bd = results.get("bd") or compute_bd(results)
+    base = results.get("baseline", "baseline")
     seeded = any(b.get("seed") is not None for b in bd)
+    nested = any(bd_against(results, b) != base for b in bd)
     rows, foot = [], []
     for b in bd:
         mark = ""
+        ref = bd_against(results, b)
         if b["note"]:
-            foot.append(f"({len(foot) + 1}) {label(results, b['method'])}: {b['note']}")
+            vs = f" vs {label(results, ref)}" if ref != base else ""
+            foot.append(f"({len(foot) + 1}) {label(results, b['method'])}{vs}: {b['note']}")
             mark = f"({len(foot)})"
         sd = b.get("seed")
         curve = ([("seed-mean curves" if sd == "mean" else f"seed {sd}")] if seeded else [])
-        rows.append([label(results, b["method"])] + curve + [f"{b['points']} vs {b['baseline_points']}",
+        rows.append([label(results, b["method"])] + ([label(results, ref)] if nested else [])
+                    + curve + [f"{b['points']} vs {b['baseline_points']}",
                      "-" if b["bd_rate"] is None else f"{b['bd_rate']:+.2f}",
                      "-" if b["bd_psnr"] is None else f"{b['bd_psnr']:+.3f}",
                      _overlap_cell(b), mark])
@@ -652,10 +688,16 @@ def bd_table(results: dict) -> Table:
                      "curves: per lambda the mean size and PSNR over the seeds (a lambda "
                      "counts once every seed has finished), the comparison's answer; the "
                      "per-seed rows show how far one seed moves it.")
-    return Table(f"Bjontegaard deltas against {label(results, results.get('baseline', 'baseline'))}",
-                 ["method"] + (["curve"] if seeded else []) +
-                 ["points", "BD-rate (%)", "BD-PSNR (dB)", "PSNR overlap", "note"], rows, notes,
-                 left=2 if seeded else 1)
+    if nested:
+        notes.append(f"Against: the reference curve. Every method is measured against "
+                     f"{label(results, base)}, and a method that extends other contenders (its "
+                     f"patches include all of theirs) also against each of them: the delta its "
+                     f"extra patches make on their own.")
+    title = (f"Bjontegaard deltas against {label(results, base)}" if not nested else
+             f"Bjontegaard deltas against {label(results, base)} and the methods each extends")
+    return Table(title, ["method"] + (["against"] if nested else []) + (["curve"] if seeded else [])
+                 + ["points", "BD-rate (%)", "BD-PSNR (dB)", "PSNR overlap", "note"], rows, notes,
+                 left=1 + nested + seeded)
 
 
 def seed_table(results: dict) -> Optional[Table]:
@@ -840,39 +882,50 @@ def _curve_points(results: dict, method: str) -> list[dict]:
 
 def verdict_lines(results: dict) -> list[str]:
     """Which method wins, by how much, at what speed, each sign spelt out: per contender, the
-    BD-rate and BD-PSNR against the baseline (on the seed-mean curves when there are seeds), the
-    size and PSNR changes at each lambda, the paired FPS ratio when one was measured
-    (``results["fps_pair"]``) and the training-time ratio. ``results["scope"]`` (e.g. the
+    BD-rate and BD-PSNR against the baseline and against each contender it extends (on the
+    seed-mean curves when there are seeds), the size and PSNR changes at each lambda, the paired
+    FPS ratio when one was measured (``results["fps_pair"]``) and the training-time ratio. ``results["scope"]`` (e.g. the
     demo's "synthetic scene" caveat) closes it."""
     base = results.get("baseline", "baseline")
     bname = label(results, base)
     seeds = seeds_of(results)
-    bd = {(b["method"], b["seed"]): b for b in (results.get("bd") or compute_bd(results))}
+    bd = {(b["method"], bd_against(results, b), b["seed"]): b
+          for b in (results.get("bd") or compute_bd(results))}
+    curve = f"on the seed-mean curves of {len(seeds)} seeds" if seeds else "one seed"
+
+    def bd_lines(name: str, m: str, ref: str) -> list[str]:
+        rname = label(results, ref)
+        out = []
+        b = bd.get((m, ref, "mean" if seeds else None))
+        if b is not None and b["bd_rate"] is not None:
+            r = b["bd_rate"]
+            out.append(f"{name} is {abs(r):.1f}% {'smaller' if r < 0 else 'larger'} than {rname} "
+                       f"at equal quality (BD-rate {r:+.2f}%, {curve}{bd_caveats(b)})")
+        elif b is not None:
+            out.append(f"{name} vs {rname}: no BD-rate ({b['note'] or 'curves do not overlap'})")
+        if b is not None and b["bd_psnr"] is not None:
+            d = b["bd_psnr"]
+            out.append(f"{name} is {abs(d):.3f} dB {'better' if d > 0 else 'worse'} than {rname} "
+                       f"at equal size (BD-PSNR {d:+.3f} dB)")
+        if seeds:
+            per = [x for (mm, rr, sd), x in bd.items() if mm == m and rr == ref and sd != "mean"
+                   and x["bd_rate"] is not None]
+            if len(per) > 1:
+                v = [x["bd_rate"] for x in per]
+                out.append(f"  per seed: " + ", ".join(f"{x['bd_rate']:+.2f}% (seed {x['seed']})"
+                                                       for x in per)
+                           + f"; spread {max(v) - min(v):.2f} points")
+        return out
+
     lines = []
     for m in method_names(results):
         if m == base or not runs_of(results, m):
             continue
         name = label(results, m)
-        b = bd.get((m, "mean" if seeds else None))
-        curve = f"on the seed-mean curves of {len(seeds)} seeds" if seeds else "one seed"
-        if b is not None and b["bd_rate"] is not None:
-            r = b["bd_rate"]
-            lines.append(f"{name} is {abs(r):.1f}% {'smaller' if r < 0 else 'larger'} than {bname} "
-                         f"at equal quality (BD-rate {r:+.2f}%, {curve}{bd_caveats(b)})")
-        elif b is not None:
-            lines.append(f"{name} vs {bname}: no BD-rate ({b['note'] or 'curves do not overlap'})")
-        if b is not None and b["bd_psnr"] is not None:
-            d = b["bd_psnr"]
-            lines.append(f"{name} is {abs(d):.3f} dB {'better' if d > 0 else 'worse'} than {bname} "
-                         f"at equal size (BD-PSNR {d:+.3f} dB)")
-        if seeds:
-            per = [x for (mm, sd), x in bd.items() if mm == m and sd != "mean"
-                   and x["bd_rate"] is not None]
-            if len(per) > 1:
-                v = [x["bd_rate"] for x in per]
-                lines.append(f"  per seed: " + ", ".join(f"{x['bd_rate']:+.2f}% (seed {x['seed']})"
-                                                         for x in per)
-                             + f"; spread {max(v) - min(v):.2f} points")
+        lines += bd_lines(name, m, base)
+        for ref in nested_references(results, m):
+            if runs_of(results, ref):
+                lines += bd_lines(name, m, ref)
         eq = []
         bpts = {p["lmbda"]: p for p in _curve_points(results, base)}
         for pt in _curve_points(results, m):
