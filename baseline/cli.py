@@ -101,7 +101,7 @@ def cmd_eval(args) -> int:
     r = Renderable(args.target, args.scene, device=args.device)
     lpips_fn, reason = load_lpips(_lpips_weights(args))
     if lpips_fn is None:
-        print(reason)
+        print(reason, file=sys.stderr)          # stdout stays one JSON document
     target = Path(args.target)
     out_dir = target if target.is_dir() else target.with_suffix("")
     res = r.evaluate(args.split, render_dir=out_dir / "renders" / args.split, lpips_fn=lpips_fn)
