@@ -527,3 +527,11 @@ def test_a_method_is_also_measured_against_each_contender_it_extends(tmp_path):
     assert "and the methods each extends" not in format_report(old)
     write_report(res, tmp_path, plots=False)
     assert "smaller than HAC++" in (tmp_path / "report.md").read_text()
+
+
+def test_a_comparison_of_one_named_seed_says_one_seed():
+    res = seeded_results()
+    res["runs"] = [r for r in res["runs"] if r["seed"] == 1]
+    res["seeds"] = [1]
+    txt = " ".join(verdict_lines(res))
+    assert "(BD-rate -10.00%, one seed (1))" in txt and "curves of 1 seeds" not in txt

@@ -891,7 +891,8 @@ def verdict_lines(results: dict) -> list[str]:
     seeds = seeds_of(results)
     bd = {(b["method"], bd_against(results, b), b["seed"]): b
           for b in (results.get("bd") or compute_bd(results))}
-    curve = f"on the seed-mean curves of {len(seeds)} seeds" if seeds else "one seed"
+    curve = (f"on the seed-mean curves of {len(seeds)} seeds" if len(seeds) > 1 else
+             f"one seed ({seeds[0]})" if seeds else "one seed")
 
     def bd_lines(name: str, m: str, ref: str) -> list[str]:
         rname = label(results, ref)
