@@ -175,7 +175,7 @@ def _bd_item(method: str, seed, base: list[dict], rs: list[dict], against: str) 
             "baseline_points": len(base), "bd_rate": None, "bd_psnr": None, "note": ""}
     if min(len(rs), len(base)) < BD_MIN_POINTS:
         item["note"] = (f"needs >= {BD_MIN_POINTS} rate points per method "
-                        f"(have {len(rs)}, baseline {len(base)})")
+                        f"(have {len(rs)}, the curve it is measured against {len(base)})")
         return item
     args = ([b["mb"] for b in base], [b["psnr"] for b in base],
             [r["mb"] for r in rs], [r["psnr"] for r in rs])
@@ -884,8 +884,8 @@ def verdict_lines(results: dict) -> list[str]:
     """Which method wins, by how much, at what speed, each sign spelt out: per contender, the
     BD-rate and BD-PSNR against the baseline and against each contender it extends (on the
     seed-mean curves when there are seeds), the size and PSNR changes at each lambda, the paired
-    FPS ratio when one was measured (``results["fps_pair"]``) and the training-time ratio. ``results["scope"]`` (e.g. the
-    demo's "synthetic scene" caveat) closes it."""
+    FPS ratio when one was measured (``results["fps_pair"]``) and the training-time ratio.
+    ``results["scope"]`` (e.g. the demo's "synthetic scene" caveat) closes it."""
     base = results.get("baseline", "baseline")
     bname = label(results, base)
     seeds = seeds_of(results)
