@@ -514,6 +514,16 @@ def test_a_method_is_also_measured_against_each_contender_it_extends(tmp_path):
     assert bd[("predict-gs+hacpp", "baseline")]["bd_rate"] == pytest.approx(-37.0, abs=1e-3)
     assert bd[("predict-gs+hacpp", "hacpp")]["bd_rate"] == pytest.approx(-10.0, abs=1e-3)
     assert bd[("predict-gs+hacpp", "predict-gs")]["bd_rate"] == pytest.approx(-21.25, abs=1e-3)
+    # without the methods list the runs' records name the patches; a method known by neither
+    # extends nothing and is extended by nothing
+    bare = dict(res, methods=[])
+    assert {(b["method"], b["against"]) for b in compute_bd(bare)} == set(bd)
+    bare["runs"] = [dict(r) for r in runs]
+    for r in bare["runs"]:
+        if r["method"] == "hacpp":
+            del r["method_patches"]
+    assert {(b["method"], b["against"]) for b in compute_bd(bare)} == set(bd) - {
+        ("predict-gs+hacpp", "hacpp")}
     lines = verdict_lines(res)
     assert any(l.startswith("Predict-GS+HAC++ is 10.0% smaller than HAC++ at equal quality")
                for l in lines)

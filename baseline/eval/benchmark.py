@@ -27,7 +27,7 @@ import time
 from pathlib import Path
 from typing import Optional
 
-from baseline.eval.compare import parse_methods, plan_runs, is_finished, lpips_id
+from baseline.eval.compare import BASELINE, parse_methods, plan_runs, is_finished, lpips_id
 from baseline.eval.executors import Job, make_executor
 from baseline.fileio import write_text_atomic
 
@@ -225,8 +225,8 @@ def format_benchmark(res: dict, markdown: bool = True) -> str:
     bd_head = ["method"] + list(res["scenes"]) + ["mean"]
     bd_rows = []
     for b in res["bd"]:
-        ref = b.get("against", "baseline")
-        cells = [name(b["method"]) + ("" if ref == "baseline" else f" vs {name(ref)}")]
+        ref = b.get("against", BASELINE)            # records from before references: baseline
+        cells = [name(b["method"]) + ("" if ref == BASELINE else f" vs {name(ref)}")]
         for s in res["scenes"]:
             v = b["per_scene"].get(s)
             cells.append("-" if not v or v["bd_rate"] is None else

@@ -199,14 +199,16 @@ def _bd_item(method: str, seed, base: list[dict], rs: list[dict], against: str) 
     return item
 
 
-def method_patches(results: dict, method: str) -> frozenset:
+def method_patches(results: dict, method: str) -> Optional[frozenset]:
     """The patches that make ``method`` (beyond the common ones): from the comparison's methods,
-    else from its id (the patches joined by "+"; "baseline" has none)."""
+    else from its runs' records; None when neither names them."""
     for m in results.get("methods", []):
         if m["name"] == method:
             return frozenset(m.get("patches") or [])
-    return frozenset() if method == results.get("baseline", "baseline") else \
-        frozenset(p for p in method.split("+") if p)
+    for r in runs_of(results, method):
+        if "method_patches" in r:
+            return frozenset(r["method_patches"])
+    return None
 
 
 def nested_references(results: dict, method: str) -> list[str]:
@@ -216,8 +218,14 @@ def nested_references(results: dict, method: str) -> list[str]:
     coding."""
     base = results.get("baseline", "baseline")
     mine = method_patches(results, method)
-    return [n for n in method_names(results) if n not in (base, method)
-            and method_patches(results, n) < mine]
+    if not mine:
+        return []
+    refs = []
+    for n in method_names(results):
+        theirs = method_patches(results, n) if n not in (base, method) else None
+        if theirs and theirs < mine:
+            refs.append(n)
+    return refs
 
 
 def compute_bd(results: dict) -> list[dict]:
@@ -697,7 +705,7 @@ def bd_table(results: dict) -> Table:
              f"Bjontegaard deltas against {label(results, base)} and the methods each extends")
     return Table(title, ["method"] + (["against"] if nested else []) + (["curve"] if seeded else [])
                  + ["points", "BD-rate (%)", "BD-PSNR (dB)", "PSNR overlap", "note"], rows, notes,
-                 left=1 + nested + seeded)
+                 left=1 + int(nested) + int(seeded))
 
 
 def seed_table(results: dict) -> Optional[Table]:
