@@ -545,3 +545,10 @@ def test_a_comparison_of_one_named_seed_says_one_seed():
     res["seeds"] = [1]
     txt = " ".join(verdict_lines(res))
     assert "(BD-rate -10.00%, one seed (1))" in txt and "curves of 1 seeds" not in txt
+    # its per-run table claims no spread: no bracketed zeros, a title that says so
+    from baseline.eval.report import seed_table
+
+    tab = seed_table(res)
+    assert tab.title == "Per run (one seed (1): no spread measured)"
+    assert not any("(" in cell for row in tab.rows for cell in row[3:])
+    assert "Seed mean and spread" not in format_report(res)

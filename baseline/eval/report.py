@@ -721,6 +721,8 @@ def seed_table(results: dict) -> Optional[Table]:
                 v = pt.get(key)
                 if v is None:
                     return "-"
+                if pt["n"] < 2:  # one seed measures no spread: a bracketed 0 would claim one
+                    return f"{100 * v:.1f}%" if pct else f"{v:.{nd}f}"
                 lo, hi = pt[key + "_min"], pt[key + "_max"]
                 if pct:
                     return f"{100 * v:.1f}% ({100 * (hi - lo):.1f})"
@@ -730,6 +732,13 @@ def seed_table(results: dict) -> Optional[Table]:
             rows.append([label(results, m), f"{pt['lmbda']:g}", str(pt["n"]), ms("psnr", 3), ms("ssim", 4),
                          ms("mb", 4), ms("mask_on_fraction", 1, pct=True),
                          ms("gaussians_mean", 0), ms("anchors", 0)])
+    if len(seeds) < 2:
+        return Table(f"Per run (one seed ({seeds[0]}): no spread measured)",
+                     ["method", "lambda", "seeds", "PSNR (dB)", "SSIM", "size (MB)", "masks on",
+                      "Gaussians/view", "anchors"], rows,
+                     ["One seed measures no spread: a difference between methods is a measured "
+                      "difference only where it is larger than the seed spread the scene shows "
+                      "with two seeds (a comparison with --seeds 0 1)."], left=2)
     return Table(f"Seed mean and spread (seeds {', '.join(map(str, seeds))})",
                  ["method", "lambda", "seeds", "PSNR (dB)", "SSIM", "size (MB)", "masks on",
                   "Gaussians/view", "anchors"], rows,
