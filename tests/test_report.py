@@ -552,3 +552,8 @@ def test_a_comparison_of_one_named_seed_says_one_seed():
     assert tab.title == "Per run (one seed (1): no spread measured)"
     assert not any("(" in cell for row in tab.rows for cell in row[3:])
     assert "Seed mean and spread" not in format_report(res)
+    # and one BD row per pair, named by its seed (not a seed row beside an equal mean row)
+    from baseline.eval.report import bd_table
+
+    bt = bd_table(res)
+    assert [r[1] for r in bt.rows] == ["seed 1"] and "no spread measured" in " ".join(bt.notes)

@@ -669,7 +669,10 @@ def bd_table(results: dict) -> Table:
     seeded = any(b.get("seed") is not None for b in bd)
     nested = any(bd_against(results, b) != base for b in bd)
     rows, foot = [], []
+    one_seed = seeded and len({b.get("seed") for b in bd} - {"mean"}) == 1
     for b in bd:
+        if one_seed and b.get("seed") != "mean":
+            continue  # one seed: its curve is the seed-mean curve; one row, not two equal ones
         mark = ""
         ref = bd_against(results, b)
         if b["note"]:
@@ -677,7 +680,8 @@ def bd_table(results: dict) -> Table:
             foot.append(f"({len(foot) + 1}) {label(results, b['method'])}{vs}: {b['note']}")
             mark = f"({len(foot)})"
         sd = b.get("seed")
-        curve = ([("seed-mean curves" if sd == "mean" else f"seed {sd}")] if seeded else [])
+        curve = ([(f"seed {seeds_of(results)[0]}" if one_seed else
+                   "seed-mean curves" if sd == "mean" else f"seed {sd}")] if seeded else [])
         rows.append([label(results, b["method"])] + ([label(results, ref)] if nested else [])
                     + curve + [f"{b['points']} vs {b['baseline_points']}",
                      "-" if b["bd_rate"] is None else f"{b['bd_rate']:+.2f}",
@@ -691,7 +695,10 @@ def bd_table(results: dict) -> Table:
                     f"{BD_THIN_OVERLAP:.0%}: the delta then describes a sliver of the curves). "
                     "This, not a pair of runs at one lambda, is the rate-distortion comparison: "
                     "lambda only moves each method along its own curve."]
-    if seeded:
+    if one_seed:
+        notes.append("One seed: its curves only, no spread measured (a comparison with "
+                     "--seeds 0 1 gives the per-seed rows and the seed-mean curves).")
+    elif seeded:
         notes.append("Per seed: the method's and the baseline's runs of that seed; seed-mean "
                      "curves: per lambda the mean size and PSNR over the seeds (a lambda "
                      "counts once every seed has finished), the comparison's answer; the "
