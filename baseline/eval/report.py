@@ -669,7 +669,7 @@ def bd_table(results: dict) -> Table:
     seeded = any(b.get("seed") is not None for b in bd)
     nested = any(bd_against(results, b) != base for b in bd)
     rows, foot = [], []
-    one_seed = seeded and len({b.get("seed") for b in bd} - {"mean"}) == 1
+    one_seed = seeded and len(seeds_of(results)) == 1
     for b in bd:
         if one_seed and b.get("seed") != "mean":
             continue  # one seed: its curve is the seed-mean curve; one row, not two equal ones
@@ -728,7 +728,7 @@ def seed_table(results: dict) -> Optional[Table]:
                 v = pt.get(key)
                 if v is None:
                     return "-"
-                if pt["n"] < 2:  # one seed measures no spread: a bracketed 0 would claim one
+                if len(seeds) < 2:  # one seed measures no spread: a bracketed 0 would claim one
                     return f"{100 * v:.1f}%" if pct else f"{v:.{nd}f}"
                 lo, hi = pt[key + "_min"], pt[key + "_max"]
                 if pct:
@@ -740,19 +740,18 @@ def seed_table(results: dict) -> Optional[Table]:
                          ms("mb", 4), ms("mask_on_fraction", 1, pct=True),
                          ms("gaussians_mean", 0), ms("anchors", 0)])
     if len(seeds) < 2:
-        return Table(f"Per run (one seed ({seeds[0]}): no spread measured)",
-                     ["method", "lambda", "seeds", "PSNR (dB)", "SSIM", "size (MB)", "masks on",
-                      "Gaussians/view", "anchors"], rows,
-                     ["One seed measures no spread: a difference between methods is a measured "
-                      "difference only where it is larger than the seed spread the scene shows "
-                      "with two seeds (a comparison with --seeds 0 1)."], left=2)
-    return Table(f"Seed mean and spread (seeds {', '.join(map(str, seeds))})",
-                 ["method", "lambda", "seeds", "PSNR (dB)", "SSIM", "size (MB)", "masks on",
-                  "Gaussians/view", "anchors"], rows,
-                 ["Each cell: the mean over the seeds and, in brackets, the spread (max - min; "
-                  "for size, Gaussians and anchors in percent of the mean). Differences between "
-                  "methods smaller than the spread are not measured differences. A lambda is "
-                  "shown once every seed has finished."], left=2)
+        title = f"Per run (one seed ({seeds[0]}): no spread measured)"
+        note = ("One seed measures no spread: a difference between methods is a measured "
+                "difference only where it is larger than the seed spread the scene shows with "
+                "two seeds (a comparison with --seeds 0 1).")
+    else:
+        title = f"Seed mean and spread (seeds {', '.join(map(str, seeds))})"
+        note = ("Each cell: the mean over the seeds and, in brackets, the spread (max - min; "
+                "for size, Gaussians and anchors in percent of the mean). Differences between "
+                "methods smaller than the spread are not measured differences. A lambda is "
+                "shown once every seed has finished.")
+    return Table(title, ["method", "lambda", "seeds", "PSNR (dB)", "SSIM", "size (MB)", "masks on",
+                         "Gaussians/view", "anchors"], rows, [note], left=2)
 
 
 def protocol_lines(results: dict) -> list[tuple[str, str]]:
