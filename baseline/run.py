@@ -91,6 +91,10 @@ def _finish_run(trainer, scene, scene_path, out: Path, cfg: Config, evaluate_aft
         "train_time_s": trainer.train_time,
         "s_per_it": trainer.train_time / max(trainer.iteration, 1),
         "threads": trainer.threads,
+        # present when the run was resumed at another thread count: [first iteration, threads]
+        # per stretch (threads None: not recorded by the checkpoint it resumed from)
+        **({"threads_by_iteration": trainer.thread_segments}
+           if len(trainer.thread_segments) > 1 else {}),
         "device": device_name(trainer.device),
         "backend": resolve_backend(cfg.train.rasterizer, trainer.model.xyz),
         "voxel_size": trainer.voxel_size,

@@ -62,6 +62,40 @@ def test_train_log_is_one_curve_across_a_resume(scene_dir, tmp_path):
     assert t == sorted(t) and t[0] > 0
 
 
+def test_a_resume_at_another_thread_count_keeps_both_counts(scene_dir, tmp_path):
+    """A run resumed at another thread count keeps which iterations ran at which count (its
+    time per iteration mixes them), through later checkpoints, into results and the report;
+    a checkpoint that did not record it shows its stretch as unrecorded."""
+    from baseline.eval.report import _threads_shown
+    from baseline.train.trainer import set_threads
+    scene = load_scene(scene_dir)
+    a = Trainer(_cfg(20, "train.checkpoint_every=0"), scene, tmp_path / "t", progress=False)
+    a.train(until=10)
+    assert a.thread_segments == [[0, 1]]
+    try:
+        b = Trainer(_cfg(20, "train.threads=2"), scene, tmp_path / "t", progress=False)
+        b.load_checkpoint(tmp_path / "t" / "checkpoint.pt")
+        two = b.threads                            # 1 on a one-core machine
+        b.train(until=15)
+        c = Trainer(_cfg(20, "train.threads=2"), scene, tmp_path / "t", progress=False)
+        c.load_checkpoint(tmp_path / "t" / "checkpoint.pt")
+    finally:
+        set_threads(1)
+    want = [[0, 1], [10, 2]] if two == 2 else [[0, 1]]
+    assert b.thread_segments == want and c.thread_segments == want
+    old = torch.load(tmp_path / "t" / "checkpoint.pt", weights_only=False)
+    del old["thread_segments"]                     # written before the counts were kept
+    torch.save(old, tmp_path / "old.pt")
+    d = Trainer(_cfg(20), scene, tmp_path / "d", progress=False)
+    d.load_checkpoint(tmp_path / "old.pt")
+    assert d.thread_segments == [[0, None], [15, 1]]
+    assert _threads_shown({"threads": 1, "threads_by_iteration": d.thread_segments}) == \
+        "unrecorded from iteration 0, then 1 from iteration 15"
+    assert _threads_shown({"threads": 2, "threads_by_iteration": [[0, 1], [10, 2]]}) == \
+        "1 from iteration 0, then 2 from iteration 10"
+    assert _threads_shown({"threads": 1}) == "1"
+
+
 def test_checkpoint_with_nan_is_refused(scene_dir, tmp_path):
     cfg = _cfg(5)
     scene = load_scene(scene_dir)

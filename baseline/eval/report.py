@@ -758,10 +758,11 @@ def protocol_lines(results: dict) -> list[tuple[str, str]]:
     runs = ordered_runs(results)
     prot = runs[0].get("protocol", {}) if runs else {}
 
-    def per_method(key: str) -> str:
+    def per_method(key: str, show=None) -> str:
         vals = {}
         for r in runs:
-            vals.setdefault(str(r.get(key, "cpu" if key == "device" else "-")), []).append(f"{label(results, r['method'])} {_lam(r)}")
+            v = show(r) if show else str(r.get(key, "cpu" if key == "device" else "-"))
+            vals.setdefault(v, []).append(f"{label(results, r['method'])} {_lam(r)}")
         if len(vals) <= 1:
             return next(iter(vals), "-")
         return "; ".join(f"{v} ({', '.join(who)})" for v, who in vals.items())
@@ -788,7 +789,7 @@ def protocol_lines(results: dict) -> list[tuple[str, str]]:
         ("rate term", _rate_term_line(results, runs)),
         ("training semantics", _semantics_line(runs)),
         ("iterations", per_method("iterations")),
-        ("threads", per_method("threads")),
+        ("threads", per_method("threads", _threads_shown)),
         ("device", per_method("device")),
         ("backend", per_method("backend")),
         ("evaluated on", per_method("split")),
@@ -807,6 +808,17 @@ def protocol_lines(results: dict) -> list[tuple[str, str]]:
         items.append(("from records", ", ".join(kept) + ": reported from their archived records "
                       "(measured when they were trained; no model file here)"))
     return items
+
+
+def _threads_shown(r: dict) -> str:
+    """A run's thread count; a run resumed at another count names each from its first
+    iteration ("1 from iteration 0, then 2 from iteration 2669"; "unrecorded" where the
+    checkpoint it resumed from did not keep it)."""
+    segs = r.get("threads_by_iteration")
+    if not segs:
+        return str(r.get("threads", "-"))
+    return ", then ".join(f"{'unrecorded' if t is None else t} from iteration {i}"
+                          for i, t in segs)
 
 
 def _semantics_line(runs: list) -> str:

@@ -114,6 +114,9 @@ class Trainer:
         self.progress = progress
         self.device = resolve_device(str(device) if device is not None else cfg.train.device)
         self.threads = set_threads(cfg.train.threads)
+        # [first iteration, threads] per stretch of training: a run resumed at another thread
+        # count trained its iterations at several (its time per iteration mixes them)
+        self.thread_segments: list[list] = [[0, self.threads]]
         torch.manual_seed(cfg.train.seed)
         np.random.seed(cfg.train.seed)
         random.seed(cfg.train.seed)
@@ -362,6 +365,7 @@ class Trainer:
             "iteration": self.iteration,
             "train_time": self.train_time,
             "loss_ema": self._ema_loss,
+            "thread_segments": self.thread_segments,
             "shapes": {k: tuple(v.shape) for k, v in self.model.per_anchor.items()},
             "model": self.model.state_dict(),
             "entropy": self.entropy.state_dict(),
@@ -428,6 +432,11 @@ class Trainer:
         self.iteration = s["iteration"]
         self._last_saved = self.iteration
         self._ema_loss = s.get("loss_ema")     # checkpoints written before it was kept: None
+        # checkpoints written before the thread counts were kept: unrecorded (None) up to here
+        segs = [list(x) for x in s.get("thread_segments") or [[0, None]]]
+        if segs[-1][1] != self.threads:
+            segs.append([int(s["iteration"]), self.threads])
+        self.thread_segments = segs
         self.train_time = s["train_time"]
         self.phase = s["phase"]
         self.render_scale = s["render_scale"]
