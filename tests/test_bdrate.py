@@ -94,3 +94,27 @@ def test_non_monotone_names_points_without_more_psnr_than_a_smaller_one():
     # truck HAC seed 0 at 6k: 0.002 and 0.001 below the 0.004 point
     assert non_monotone([4.010, 4.652, 5.274], [26.375, 26.352, 26.355]) == [1, 2]
     assert non_monotone([1, 2, 3], [30, 30, 31]) == [1]                     # equal counts
+
+
+def test_readings_interpolate_log_rate_on_the_rising_envelope():
+    import math
+
+    from baseline.eval.bdrate import psnr_at_rate, rate_at_psnr, rising_envelope
+
+    rate, psnr = [5.0, 10.0, 7.0, 8.0], [25.1, 27.0, 26.2, 26.0]    # 8.0 does not rise: left out
+    assert rising_envelope(rate, psnr) == [0, 2, 1]
+    # at a curve point: that point's rate and PSNR exactly
+    assert rate_at_psnr(rate, psnr, 26.2) == pytest.approx(7.0)
+    assert psnr_at_rate(rate, psnr, 7.0) == pytest.approx(26.2)
+    # between two points: linear in log-rate, by hand
+    t = (26.6 - 26.2) / (27.0 - 26.2)
+    assert rate_at_psnr(rate, psnr, 26.6) == pytest.approx(math.exp(
+        math.log(7.0) + t * (math.log(10.0) - math.log(7.0))))
+    u = math.log(5.6 / 5.0) / math.log(7.0 / 5.0)
+    assert psnr_at_rate(rate, psnr, 5.6) == pytest.approx(25.1 + u * (26.2 - 25.1))
+    # the 8.0 point (26.0 dB) would have bent the curve between 7 and 10: it is not used
+    assert psnr_at_rate(rate, psnr, 8.0) > 26.2
+    # never extrapolated; fewer than two envelope points read nothing
+    assert rate_at_psnr(rate, psnr, 27.5) is None and psnr_at_rate(rate, psnr, 4.0) is None
+    assert rate_at_psnr([1.0, 2.0], [30.0, 29.0], 30.0) is None
+    assert psnr_at_rate([1.0], [30.0], 1.0) is None

@@ -557,3 +557,46 @@ def test_a_comparison_of_one_named_seed_says_one_seed():
 
     bt = bd_table(res)
     assert [r[1] for r in bt.rows] == ["seed 1"] and "no spread measured" in " ".join(bt.notes)
+
+
+def test_each_point_is_read_against_the_other_curves():
+    """Predict-GS has 0.8x the baseline's bytes at the baseline's PSNRs: at each point's PSNR the
+    baseline's curve needs 1/0.8 its size (-20%), and the baseline's points read +25% against
+    Predict-GS's curve; a point outside a curve reads '-'."""
+    import math
+
+    from baseline.eval.report import point_readings, point_table
+
+    res = stored_results()
+    pr = {it["lmbda"]: it for it in point_readings(res, "predict-gs", "baseline")}
+    for lm in LAMBDAS:
+        assert pr[lm]["size_change"] == pytest.approx(-20.0, abs=1e-4)
+    # PSNR at equal size, by hand: 0.002's 5.6 MB lies between the baseline's 5 MB and 7 MB
+    u = math.log(0.8 * 7 / 5) / math.log(7 / 5)
+    assert pr[0.002]["psnr_change"] == pytest.approx(26.2 - (25.1 + u * 1.1), abs=1e-5)
+    assert pr[0.004]["ref_psnr"] is None and pr[0.004]["psnr_change"] is None   # 4 MB < 5 MB
+    back = {it["lmbda"]: it for it in point_readings(res, "baseline", "predict-gs")}
+    assert back[0.002]["size_change"] == pytest.approx(25.0, abs=1e-4)
+    tab = point_table(res)
+    assert tab is not None and "-20.0%" in tab.text() and "+25.0%" in tab.text()
+    assert "Each rate point against the other curves" in format_report(res)
+
+
+def test_a_curve_too_short_for_a_bd_rate_is_read_point_by_point():
+    res = stored_results()
+    res["runs"] = [r for r in res["runs"]
+                   if not (r["method"] == "predict-gs" and r["lmbda"] == 0.004)]
+    txt = "\n".join(verdict_lines(res))
+    assert "Predict-GS vs HAC: no BD-rate" in txt
+    line = [ln for ln in txt.splitlines() if "point by point against HAC's curve" in ln]
+    assert len(line) == 1 and "lambda 0.002 20.0% smaller at equal PSNR" in line[0]
+    assert "lambda 0.0005 20.0% smaller at equal PSNR" in line[0]
+
+
+def test_points_outside_every_curve_make_no_point_table():
+    from baseline.eval.report import point_table
+
+    res = stored_results()
+    res["runs"] = [r for r in res["runs"] if r["lmbda"] == 0.004]     # one point per method
+    assert point_table(res) is None
+    assert "Each rate point against" not in format_report(res)

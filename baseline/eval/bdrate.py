@@ -105,3 +105,48 @@ def non_monotone(rate, psnr) -> list[int]:
             out.append(int(i))
         best = max(best, d[i])
     return sorted(out)
+
+
+def rising_envelope(rate, psnr) -> list[int]:
+    """Indices of the points that make a curve rise, in order of rate: every point except those
+    :func:`non_monotone` names (more rate, no more PSNR than a smaller point). On it, PSNR grows
+    strictly with rate, so each axis is a function of the other."""
+    r = np.asarray(rate, dtype=np.float64)
+    bad = set(non_monotone(rate, psnr))
+    return [int(i) for i in np.argsort(r, kind="stable") if int(i) not in bad]
+
+
+def _reading(xs, ys, x) -> float | None:
+    """Linear interpolation of ``ys`` at ``x`` between the two neighbouring ``xs`` (increasing);
+    None outside ``[xs[0], xs[-1]]``: a reading never extrapolates."""
+    for x0, x1, y0, y1 in zip(xs, xs[1:], ys, ys[1:]):
+        if x0 <= x <= x1:
+            return float(y0 + (x - x0) / (x1 - x0) * (y1 - y0))
+    return None
+
+
+def rate_at_psnr(rate, psnr, at: float) -> float | None:
+    """The rate a curve needs for PSNR ``at``: its log-rate interpolated linearly between the two
+    points of its rising envelope around ``at``; None outside the envelope's PSNR range or with
+    fewer than two envelope points.
+
+    A point against another method's curve (``rate / rate_at_psnr(...) - 1``) is a reading at
+    one PSNR, not a Bjontegaard delta: it serves where a curve has too few points for one, and
+    it moves with the point's own seed noise."""
+    env = rising_envelope(rate, psnr)
+    if len(env) < 2:
+        return None
+    lr = _log_rate([rate[i] for i in env], "rate_at_psnr")
+    v = _reading([float(psnr[i]) for i in env], lr.tolist(), float(at))
+    return None if v is None else float(10.0 ** v)
+
+
+def psnr_at_rate(rate, psnr, at: float) -> float | None:
+    """The PSNR a curve reaches at rate ``at``: interpolated linearly in log-rate between the two
+    points of its rising envelope around ``at``; None outside its rate range or with fewer than
+    two envelope points."""
+    env = rising_envelope(rate, psnr)
+    if len(env) < 2 or not at > 0:
+        return None
+    lr = _log_rate([rate[i] for i in env], "psnr_at_rate")
+    return _reading(lr.tolist(), [float(psnr[i]) for i in env], float(np.log10(at)))

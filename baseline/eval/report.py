@@ -13,7 +13,9 @@ Tables:
   3. per coded attribute, the values coded and bits per value against the baseline's;
   4. speed against error (train time, s/it, encode, decode, FPS with / without the cache);
   5. BD-rate / BD-PSNR against the baseline, and against each contender a method extends
-     (PCHIP, :mod:`baseline.eval.bdrate`), for methods with at least 3 rate points;
+     (PCHIP, :mod:`baseline.eval.bdrate`), for methods with at least 3 rate points; then each
+     rate point read against the other curve of each such pair (size at equal PSNR, PSNR at
+     equal size), which also serves a curve too short for a BD-rate;
   6. the protocol (scene, resolution, split, background, iterations, threads, backend, versions).
 """
 from __future__ import annotations
@@ -23,7 +25,8 @@ import math
 from pathlib import Path
 from typing import Callable, Optional
 
-from baseline.eval.bdrate import BDError, bd_psnr, bd_rate, non_monotone, overlap
+from baseline.eval.bdrate import (BDError, bd_psnr, bd_rate, non_monotone, overlap, psnr_at_rate,
+                                  rate_at_psnr)
 from baseline.fileio import write_text_atomic
 
 MB = 2 ** 20
@@ -228,6 +231,37 @@ def nested_references(results: dict, method: str) -> list[str]:
     return refs
 
 
+def bd_pairs(results: dict) -> list[tuple[str, str]]:
+    """(method, reference) pairs a comparison measures: each method against the baseline, then
+    each against every contender it extends (:func:`nested_references`)."""
+    base_name = results.get("baseline", "baseline")
+    names = method_names(results)
+    pairs = [(m, base_name) for m in names if m != base_name]
+    return pairs + [(m, ref) for m in names if m != base_name
+                    for ref in nested_references(results, m)]
+
+
+def point_readings(results: dict, method: str, ref: str) -> list[dict]:
+    """Each rate point of ``method`` read against ``ref``'s curve: the size ``ref``'s curve
+    needs at the point's PSNR and the PSNR it reaches at the point's size
+    (:func:`~baseline.eval.bdrate.rate_at_psnr`, :func:`~baseline.eval.bdrate.psnr_at_rate`:
+    log-linear between the two points around the value, on the curve's rising envelope, never
+    extrapolated: None outside it). Points and curve are the seed means with seeds, else the
+    runs. Each item: lmbda, mb, psnr, ref_mb, size_change (percent), ref_psnr, psnr_change (dB)."""
+    curve = _curve_points(results, ref)
+    rs, ps = [c["mb"] for c in curve], [c["psnr"] for c in curve]
+    out = []
+    for pt in _curve_points(results, method):
+        if pt.get("mb") is None or pt.get("psnr") is None:
+            continue
+        rm = rate_at_psnr(rs, ps, pt["psnr"]) if len(curve) >= 2 else None
+        rp = psnr_at_rate(rs, ps, pt["mb"]) if len(curve) >= 2 else None
+        out.append({"lmbda": pt["lmbda"], "mb": pt["mb"], "psnr": pt["psnr"], "ref_mb": rm,
+                    "size_change": _change(pt["mb"], rm), "ref_psnr": rp,
+                    "psnr_change": None if rp is None else pt["psnr"] - rp})
+    return out
+
+
 def compute_bd(results: dict) -> list[dict]:
     """BD-rate (size in MB) and BD-PSNR (decoded PSNR) of each method against the baseline, then
     of each method against every contender it extends (:func:`nested_references`); each item
@@ -237,13 +271,9 @@ def compute_bd(results: dict) -> list[dict]:
     runs of that seed) and one on the seed-mean curves (``seed`` = "mean": per lambda the mean
     size and PSNR over the seeds), the comparison's answer; the per-seed items show its spread.
     """
-    base_name = results.get("baseline", "baseline")
     seeds = seeds_of(results)
-    names = method_names(results)
-    pairs = [(m, base_name) for m in names if m != base_name]
-    pairs += [(m, ref) for m in names if m != base_name for ref in nested_references(results, m)]
     out = []
-    for m, ref in pairs:
+    for m, ref in bd_pairs(results):
         if not seeds:
             out.append(_bd_item(m, None, runs_of(results, ref), runs_of(results, m), ref))
             continue
@@ -715,6 +745,45 @@ def bd_table(results: dict) -> Table:
                  left=1 + int(nested) + int(seeded))
 
 
+def point_table(results: dict) -> Optional[Table]:
+    """Each rate point of the two methods of every BD pair read against the other one's curve
+    (:func:`point_readings`), the points outside that curve on both axes left out; None when
+    no point lies within another curve's range."""
+    rows = []
+    done = set()
+    for m, ref in bd_pairs(results):
+        for a, b in ((m, ref), (ref, m)):
+            if (a, b) in done:
+                continue
+            done.add((a, b))
+            for it in point_readings(results, a, b):
+                if it["ref_mb"] is None and it["ref_psnr"] is None:
+                    continue            # outside the other curve on both axes: nothing to read
+                rows.append([label(results, a), f"{it['lmbda']:g}", _f(it["psnr"], 3),
+                             _f(it["mb"], 4), label(results, b), _f(it["ref_mb"], 4),
+                             _pct(it["size_change"]), _f(it["ref_psnr"], 3),
+                             "-" if it["psnr_change"] is None else f"{it['psnr_change']:+.3f}"])
+    if not rows:
+        return None
+    seeds = seeds_of(results)
+    pts = ("per lambda the mean over the seeds of size and PSNR (a lambda counts once every "
+           "seed has finished)" if len(seeds) > 1 else
+           f"the runs of seed {seeds[0]}" if seeds else "the runs")
+    notes = ["Each point (" + pts + ") read against the curve named in 'against': the size that "
+             "curve needs at the point's PSNR and the PSNR it reaches at the point's size, "
+             "interpolating log10(size) linearly between the curve's two points around the "
+             "value, on its rising envelope (a point with no more PSNR than a smaller point of "
+             "the same curve is left out); '-' outside the curve, which is never extrapolated (a "
+             "point outside it on both axes is not listed). "
+             "Size change: the point's size against the curve's (negative = smaller at equal "
+             "PSNR); PSNR change: positive = better at equal size. A reading at one point, not a "
+             "Bjontegaard delta: it moves with the point's own noise (read it against the seed "
+             "spread), and it serves where a curve has too few points for a BD-rate."]
+    return Table("Each rate point against the other curves", ["method", "lambda", "PSNR (dB)",
+                 "size (MB)", "against", "its size at this PSNR", "size change",
+                 "its PSNR at this size", "PSNR change (dB)"], rows, notes, left=2)
+
+
 def seed_table(results: dict) -> Optional[Table]:
     """Per method and lambda: the seed mean and spread (max - min) of PSNR, size and the counts
     that move with the masks. None without seeds."""
@@ -897,6 +966,7 @@ def all_tables(results: dict) -> list[Table]:
     elements, alive = elements_table(results), alive_table(results)
     ref, seeds = reference_table(results), seed_table(results)
     cen, curves = census_table(results), curve_table(results)
+    points = point_table(results)
     return ([quality_table(results)] + ([seeds] if seeds is not None else [])
             + ([ref] if ref is not None else [])
             + [groups_table(results), table3(results)]
@@ -904,14 +974,14 @@ def all_tables(results: dict) -> list[Table]:
             + [speed_table(results)] + ([alive] if alive is not None else [])
             + ([cen] if cen is not None else [])
             + ([curves] if curves is not None else [])
-            + [bd_table(results)])
+            + [bd_table(results)] + ([points] if points is not None else []))
 
 
 def _curve_points(results: dict, method: str) -> list[dict]:
     """A method's points (lmbda, bytes, psnr): the seed means with seeds, else its runs."""
     if seeds_of(results):
         return seed_mean_points(results, method)
-    return [{"lmbda": r["lmbda"], "bytes": r["bytes"], "psnr": r["psnr"]}
+    return [{"lmbda": r["lmbda"], "bytes": r["bytes"], "mb": r["mb"], "psnr": r["psnr"]}
             for r in runs_of(results, method)]
 
 
@@ -939,6 +1009,20 @@ def verdict_lines(results: dict) -> list[str]:
                        f"at equal quality (BD-rate {r:+.2f}%, {curve}{bd_caveats(b)})")
         elif b is not None:
             out.append(f"{name} vs {rname}: no BD-rate ({b['note'] or 'curves do not overlap'})")
+            reads = []
+            for it in point_readings(results, m, ref):
+                cells = []
+                if it["size_change"] is not None:
+                    c = it["size_change"]
+                    cells.append(f"{abs(c):.1f}% {'smaller' if c < 0 else 'larger'} at equal PSNR")
+                if it["psnr_change"] is not None:
+                    d = it["psnr_change"]
+                    cells.append(f"{abs(d):.3f} dB {'better' if d > 0 else 'worse'} at equal size")
+                if cells:
+                    reads.append(f"lambda {it['lmbda']:g} " + ", ".join(cells))
+            if reads:
+                out.append(f"  point by point against {rname}'s curve (readings, not a "
+                           f"BD-rate): " + "; ".join(reads))
         if b is not None and b["bd_psnr"] is not None:
             d = b["bd_psnr"]
             out.append(f"{name} is {abs(d):.3f} dB {'better' if d > 0 else 'worse'} than {rname} "
