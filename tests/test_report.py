@@ -600,3 +600,19 @@ def test_points_outside_every_curve_make_no_point_table():
     res["runs"] = [r for r in res["runs"] if r["lmbda"] == 0.004]     # one point per method
     assert point_table(res) is None
     assert "Each rate point against" not in format_report(res)
+
+
+def test_bd_rate_and_bd_psnr_of_opposite_verdicts_are_named():
+    """Fewer bytes at equal PSNR but less PSNR at equal size: the deltas contradict each other
+    (curves that cross or run through noise), and the verdict and the BD table say so."""
+    from baseline.eval.report import bd_table
+
+    res = stored_results()
+    res["bd"] = [{"method": "predict-gs", "against": "baseline", "seed": None, "points": 3,
+                  "baseline_points": 3, "bd_rate": -31.8, "bd_psnr": -0.121, "note": "",
+                  "psnr_overlap": [26.27, 26.44, 0.5], "non_monotone": False}]
+    txt = "\n".join(verdict_lines(res))
+    assert "31.8% smaller than HAC at equal quality" in txt and "disagree in sign" in txt
+    assert "disagree in sign" in " ".join(bd_table(res).notes)
+    res["bd"][0]["bd_psnr"] = 0.121                        # agreeing signs: no such caveat
+    assert "disagree in sign" not in "\n".join(verdict_lines(res))

@@ -690,7 +690,17 @@ def bd_caveats(b: dict) -> str:
                 f"measurement")
     if b.get("non_monotone"):
         out += "; a curve does not rise with size (see the BD table's note)"
+    if _signs_disagree(b):
+        out += ("; BD-rate and BD-PSNR disagree in sign (one says better, the other worse): the "
+                "curves cross or run through noise, and neither delta is a measurement")
     return out
+
+
+def _signs_disagree(b: dict) -> bool:
+    """A BD item whose two deltas point opposite ways: fewer bytes at equal PSNR (BD-rate < 0)
+    but less PSNR at equal size (BD-PSNR < 0), or the reverse."""
+    r, d = b.get("bd_rate"), b.get("bd_psnr")
+    return r is not None and d is not None and r * d > 0
 
 
 def bd_table(results: dict) -> Table:
@@ -705,9 +715,14 @@ def bd_table(results: dict) -> Table:
             continue  # one seed: its curve is the seed-mean curve; one row, not two equal ones
         mark = ""
         ref = bd_against(results, b)
-        if b["note"]:
+        note = b["note"]
+        if _signs_disagree(b):
+            note = ((note + "; ") if note else "") + (
+                "BD-rate and BD-PSNR disagree in sign: the curves cross or run through noise, "
+                "and neither delta is a measurement")
+        if note:
             vs = f" vs {label(results, ref)}" if ref != base else ""
-            foot.append(f"({len(foot) + 1}) {label(results, b['method'])}{vs}: {b['note']}")
+            foot.append(f"({len(foot) + 1}) {label(results, b['method'])}{vs}: {note}")
             mark = f"({len(foot)})"
         sd = b.get("seed")
         curve = ([(f"seed {seeds_of(results)[0]}" if one_seed else
