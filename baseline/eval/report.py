@@ -254,8 +254,8 @@ def point_readings(results: dict, method: str, ref: str) -> list[dict]:
     for pt in _curve_points(results, method):
         if pt.get("mb") is None or pt.get("psnr") is None:
             continue
-        rm = rate_at_psnr(rs, ps, pt["psnr"]) if len(curve) >= 2 else None
-        rp = psnr_at_rate(rs, ps, pt["mb"]) if len(curve) >= 2 else None
+        rm = rate_at_psnr(rs, ps, pt["psnr"])
+        rp = psnr_at_rate(rs, ps, pt["mb"])
         out.append({"lmbda": pt["lmbda"], "mb": pt["mb"], "psnr": pt["psnr"], "ref_mb": rm,
                     "size_change": _change(pt["mb"], rm), "ref_psnr": rp,
                     "psnr_change": None if rp is None else pt["psnr"] - rp})
