@@ -426,6 +426,38 @@ def test_verdict_spells_out_who_wins_by_how_much():
     assert md.index("### Verdict") < md.index("Quality and size")
 
 
+def test_training_time_ratio_pairs_runs_of_one_rate_point_and_one_thread_count():
+    from baseline.eval.report import train_time_pairs
+    res = stored_results()
+    by = {(r["method"], r["lmbda"]): r for r in res["runs"]}
+    for lm, t in zip(LAMBDAS, (1000.0, 2000.0, 4000.0)):
+        by[("baseline", lm)]["train_time_s"] = t
+        by[("predict-gs", lm)]["train_time_s"] = 1.5 * t
+    # one Predict-GS run resumed at another thread count, one trained at another count: neither
+    # compares, and the ratio is over the remaining pair alone
+    slow = by[("predict-gs", LAMBDAS[0])]
+    slow["threads_by_iteration"] = [[0, 1], [500, 2]]
+    slow["train_time_s"] = 99999.0
+    by[("predict-gs", LAMBDAS[1])]["threads"] = 1
+    pairs, left = train_time_pairs(res, "predict-gs", "baseline")
+    assert [(r["lmbda"], b["lmbda"]) for r, b in pairs] == [(LAMBDAS[2], LAMBDAS[2])]
+    assert sorted(r["lmbda"] for r, _ in left) == sorted(LAMBDAS[:2])
+    line = next(x for x in verdict_lines(res) if x.startswith("Predict-GS trains"))
+    assert line.startswith("Predict-GS trains in 1.50x HAC's time (6000 s vs 4000 s per run; "
+                           "1 pair(s) at the same rate point, 2 thread(s) each; left out: ")
+    assert f"{LAMBDAS[1]:g} (1 thread(s) against 2)" in line
+    assert f"{LAMBDAS[0]:g} (its thread count changed on a resume or is unrecorded)" in line
+    # a record with the one count it kept all along still pairs; no pair at all: said so
+    slow["threads_by_iteration"] = [[0, 2]]
+    assert len(train_time_pairs(res, "predict-gs", "baseline")[0]) == 2
+    for r in res["runs"]:
+        if r["method"] == "baseline":
+            r["threads"] = None
+    v = verdict_lines(res)
+    assert "Predict-GS's training time compares with no HAC run" in "\n".join(v)
+    assert not any(x.startswith("Predict-GS trains") for x in v)
+
+
 def test_a_thin_psnr_overlap_is_shown_and_named_in_the_verdict():
     res = stored_results()
     full = {b["method"]: b for b in compute_bd(res)}["predict-gs"]

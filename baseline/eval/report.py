@@ -894,6 +894,60 @@ def protocol_lines(results: dict) -> list[tuple[str, str]]:
     return items
 
 
+def _one_thread_count(r: dict) -> Optional[int]:
+    """The thread count a run trained at throughout; None where it changed on a resume or was
+    not recorded (such a run's training time mixes counts and compares with no other)."""
+    segs = r.get("threads_by_iteration")
+    counts = {t for _, t in segs} if segs else {r.get("threads")}
+    return counts.pop() if len(counts) == 1 and None not in counts else None
+
+
+def train_time_pairs(results: dict, method: str, base: str) -> tuple[list, list]:
+    """The (method run, baseline run) pairs whose training times compare: the same lambda and
+    seed, each trained at one thread count throughout, the same count for both; and the method's
+    runs left out, each as (run, why)."""
+    pairs, left = [], []
+    bruns = runs_of(results, base)
+    for r in runs_of(results, method):
+        b = next((x for x in bruns if x["lmbda"] == r["lmbda"]
+                  and x.get("seed") == r.get("seed")), None)
+        t = _one_thread_count(r)
+        tb = None if b is None else _one_thread_count(b)
+        if b is None:
+            left.append((r, "no baseline run at its rate point"))
+        elif t is None:
+            left.append((r, "its thread count changed on a resume or is unrecorded"))
+        elif tb is None:
+            left.append((r, "the baseline run's thread count changed on a resume or is "
+                            "unrecorded"))
+        elif t != tb:
+            left.append((r, f"{t} thread(s) against {tb}"))
+        else:
+            pairs.append((r, b))
+    return pairs, left
+
+
+def _train_time_line(results: dict, m: str, base: str, name: str, bname: str) -> Optional[str]:
+    """The verdict's training-time ratio, over the pairs of train_time_pairs only: a mean over
+    runs of other lambdas or thread counts would mix the schedule's cost with the machine's."""
+    pairs, left = train_time_pairs(results, m, base)
+    if not pairs:
+        return None if not left else (
+            f"{name}'s training time compares with no {bname} run (the same rate point, one "
+            f"thread count throughout, the same for both)")
+    tm = sum(r["train_time_s"] for r, _ in pairs)
+    tb = sum(b["train_time_s"] for _, b in pairs)
+    th = "/".join(str(t) for t in sorted({_one_thread_count(r) for r, _ in pairs}))
+    out = (f"{name} trains in {tm / tb:.2f}x {bname}'s time ({tm / len(pairs):.0f} s vs "
+           f"{tb / len(pairs):.0f} s per run; {len(pairs)} pair(s) at the same rate point, "
+           f"{th} thread(s) each")
+    # a rate point the baseline has no run at is no timing fault: only the others are named
+    named = [(r, why) for r, why in left if not why.startswith("no baseline")]
+    if named:
+        out += "; left out: " + ", ".join(f"{_lam(r)} ({why})" for r, why in named)
+    return out + ")"
+
+
 def _threads_shown(r: dict) -> str:
     """A run's thread count; a run resumed at another count names each from its first
     iteration ("1 from iteration 0, then 2 from iteration 2669"; "unrecorded" where the
@@ -1084,12 +1138,9 @@ def verdict_lines(results: dict) -> list[str]:
                          f"decoded files timed in one process, {fp['rounds']} rounds, lambda "
                          f"{fp['lmbda']:g}: {fp['fps']:.1f} vs {fp['fps_ref']:.1f} FPS, "
                          f"{fp['threads']} thread(s))")
-        tm = [r["train_time_s"] for r in runs_of(results, m)]
-        tb = [r["train_time_s"] for r in runs_of(results, base)]
-        if tm and tb and len(tm) == len(tb):
-            ratio = sum(tm) / sum(tb)
-            lines.append(f"{name} trains in {ratio:.2f}x {bname}'s time "
-                         f"({sum(tm) / len(tm):.0f} s vs {sum(tb) / len(tb):.0f} s per run)")
+        tl = _train_time_line(results, m, base, name, bname)
+        if tl:
+            lines.append(tl)
     if results.get("scope"):
         lines.append(results["scope"])
     return lines
