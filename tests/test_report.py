@@ -442,6 +442,11 @@ def test_training_time_ratio_pairs_runs_of_one_rate_point_and_one_thread_count()
     pairs, left = train_time_pairs(res, "predict-gs", "baseline")
     assert [(r["lmbda"], b["lmbda"]) for r, b in pairs] == [(LAMBDAS[2], LAMBDAS[2])]
     assert sorted(r["lmbda"] for r, _ in left) == sorted(LAMBDAS[:2])
+    # a rate point the baseline has no run at is neither paired nor left out
+    extra = dict(by[("predict-gs", LAMBDAS[2])], lmbda=0.008)
+    pairs2, left2 = train_time_pairs(dict(res, runs=res["runs"] + [extra]), "predict-gs",
+                                     "baseline")
+    assert len(pairs2) == 1 and len(left2) == 2
     line = next(x for x in verdict_lines(res) if x.startswith("Predict-GS trains"))
     assert line.startswith("Predict-GS trains in 1.50x HAC's time (6000 s vs 4000 s per run; "
                            "1 pair(s) at the same rate point, 2 thread(s) each; left out: ")
