@@ -691,9 +691,12 @@ def bd_caveats(b: dict) -> str:
     if b.get("non_monotone"):
         out += "; a curve does not rise with size (see the BD table's note)"
     if _signs_disagree(b):
-        out += ("; BD-rate and BD-PSNR disagree in sign (one says better, the other worse): the "
-                "curves cross or run through noise, and neither delta is a measurement")
+        out += ("; BD-rate and BD-PSNR disagree in sign (one says better, the other worse): "
+                + _SIGNS)
     return out
+
+
+_SIGNS = "the curves cross or run through noise, and neither delta is a measurement"
 
 
 def _signs_disagree(b: dict) -> bool:
@@ -717,9 +720,8 @@ def bd_table(results: dict) -> Table:
         ref = bd_against(results, b)
         note = b["note"]
         if _signs_disagree(b):
-            note = ((note + "; ") if note else "") + (
-                "BD-rate and BD-PSNR disagree in sign: the curves cross or run through noise, "
-                "and neither delta is a measurement")
+            note = (((note + "; ") if note else "")
+                    + "BD-rate and BD-PSNR disagree in sign: " + _SIGNS)
         if note:
             vs = f" vs {label(results, ref)}" if ref != base else ""
             foot.append(f"({len(foot) + 1}) {label(results, b['method'])}{vs}: {note}")
@@ -912,10 +914,9 @@ def train_time_pairs(results: dict, method: str, base: str) -> tuple[list, list]
     for r in runs_of(results, method):
         b = next((x for x in bruns if x["lmbda"] == r["lmbda"]
                   and x.get("seed") == r.get("seed")), None)
-        t = _one_thread_count(r)
-        tb = None if b is None else _one_thread_count(b)
         if b is None:
             continue
+        t, tb = _one_thread_count(r), _one_thread_count(b)
         if t is None:
             left.append((r, "its thread count changed on a resume or is unrecorded"))
         elif tb is None:
