@@ -90,6 +90,11 @@ def _finish_run(trainer, scene, scene_path, out: Path, cfg: Config, evaluate_aft
         "iterations": trainer.iteration,
         "train_time_s": trainer.train_time,
         "s_per_it": trainer.train_time / max(trainer.iteration, 1),
+        # of train_time, the seconds the process ran on no core (paused, or sharing its core;
+        # CPU runs only), counted from iteration stall_from when that is not 0
+        **({"stall_s": trainer.stall_time} if trainer.stall_time is not None else {}),
+        **({"stall_from": trainer.stall_from}
+           if trainer.stall_time is not None and trainer.stall_from else {}),
         "threads": trainer.threads,
         # present when the run was resumed at another thread count: [first iteration, threads]
         # per stretch (threads None: not recorded by the checkpoint it resumed from)

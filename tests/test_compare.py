@@ -187,6 +187,7 @@ def test_interrupted_compare_resumes(scene, tmp_path, monkeypatch, capsys):
         assert r["groups"] == info["groups"]
         assert 0 < r["psnr"] < 100 and 0 < r["ssim"] <= 1 and r["lpips"] is None
         assert r["fps"] > 0 and r["encode_s"] > 0 and r["decode_s"] > 0 and r["train_time_s"] > 0
+        assert 0 <= r["stall_s"] <= r["train_time_s"] and "stall_from" not in r
         assert r["anchors"] == info["n_anchors"]
         assert r["attributes"] == info["attributes"] and r["masks_on"] == info["masks_on"]
         # the Gaussians per view broken down (evaluate()); its product is the recorded mean

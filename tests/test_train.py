@@ -96,6 +96,34 @@ def test_a_resume_at_another_thread_count_keeps_both_counts(scene_dir, tmp_path)
     assert _threads_shown({"threads": 1}) == "1"
 
 
+def test_a_pause_inside_training_is_recorded_as_stall_time(scene_dir, tmp_path, monkeypatch):
+    """Time in which the process ran on no core (here a sleep inside each step, as a SIGSTOP
+    pause or a shared core) is counted as stall time, kept through a checkpoint into the log;
+    a checkpoint that did not keep it counts it from its iteration on."""
+    import time
+    scene = load_scene(scene_dir)
+    cfg = _cfg(12, "train.log_every=4", "train.checkpoint_every=0")
+    a = Trainer(cfg, scene, tmp_path / "p", progress=False)
+    a.train(until=4)
+    assert a.stall_time is not None and 0 <= a.stall_time <= a.train_time and a.stall_from == 0
+    before = a.stall_time
+    step = Trainer.step
+    monkeypatch.setattr(Trainer, "step", lambda self, it: (time.sleep(0.2), step(self, it))[1])
+    b = Trainer(cfg, scene, tmp_path / "p", progress=False)
+    b.load_checkpoint(tmp_path / "p" / "checkpoint.pt")
+    assert b.stall_time == before
+    b.train(until=8)                               # four sleeping steps: at least 0.8 s stalled
+    assert b.stall_time - before >= 0.8 - 1e-3 and b.stall_time <= b.train_time
+    rows = [json.loads(x) for x in (tmp_path / "p" / "train_log.jsonl").read_text().splitlines()]
+    assert [r["it"] for r in rows] == [4, 8] and rows[1]["stall_time"] == round(b.stall_time, 3)
+    old = torch.load(tmp_path / "p" / "checkpoint.pt", weights_only=False)
+    del old["stall_time"], old["stall_from"]       # written before the stall time was kept
+    torch.save(old, tmp_path / "old.pt")
+    c = Trainer(cfg, scene, tmp_path / "c", progress=False)
+    c.load_checkpoint(tmp_path / "old.pt")
+    assert c.stall_time == 0.0 and c.stall_from == 8
+
+
 def test_checkpoint_with_nan_is_refused(scene_dir, tmp_path):
     cfg = _cfg(5)
     scene = load_scene(scene_dir)

@@ -318,9 +318,11 @@ def _trained(spec: RunSpec) -> Optional[dict]:
 
 
 def _thread_history(res: dict) -> dict:
-    """A resumed run's thread counts by stretch of iterations, when it had several."""
+    """A resumed run's thread counts by stretch of iterations, when it had several, and its
+    stall time (of the training time, the seconds it ran on no core) where it was kept."""
     h = res.get("threads_by_iteration")
-    return {"threads_by_iteration": h} if h else {}
+    return {**({"threads_by_iteration": h} if h else {}),
+            **{k: res[k] for k in ("stall_s", "stall_from") if k in res}}
 
 
 def records_only(spec: RunSpec) -> bool:

@@ -505,6 +505,12 @@ def speed_table(results: dict) -> Table:
              "Gaussians/view: neural Gaussians kept (mask on, opacity > 0) per test view, mean; "
              "a count, not a timing, and what rasterization time follows (change vs the "
              "baseline at the same rate point)."]
+    stalled = [r for r in ordered_runs(results) if _stalled(r)]
+    if stalled:
+        notes.append("Stalled (ran on no core: paused, or sharing its core with other work), "
+                     "so its train time is not a measurement of its cost: "
+                     + "; ".join(f"{label(results, r['method'])} {_lam(r)}: {_stall_words(r)}"
+                                 for r in stalled) + ".")
     if any_cache:
         notes.append("FPS with the decoded-model cache (per-anchor predicted features computed once "
                      "at decode, inside the decode time) in 'FPS'; 'FPS w/o cache' recomputes "
@@ -904,11 +910,36 @@ def _one_thread_count(r: dict) -> Optional[int]:
     return counts.pop() if len(counts) == 1 and None not in counts else None
 
 
+# A training time whose stall share (time the process ran on no core) exceeds this measures
+# the machine's load, not the method: a healthy one-thread run beside another measured 1%.
+STALL_LIMIT = 0.05
+
+
+def stall_share(r: dict) -> Optional[float]:
+    """The share of a run's training time in which it ran on no core (paused, or sharing its
+    core), from its record; None where not recorded (GPU runs, older records)."""
+    if r.get("stall_s") is None or not r.get("train_time_s"):
+        return None
+    return float(r["stall_s"]) / float(r["train_time_s"])
+
+
+def _stalled(r: dict) -> bool:
+    sh = stall_share(r)
+    return sh is not None and sh > STALL_LIMIT
+
+
+def _stall_words(r: dict) -> str:
+    """"840 s (12%) stalled", with where counting began when not at iteration 0."""
+    frm = f", counted from iteration {r['stall_from']}" if r.get("stall_from") else ""
+    return f"{r['stall_s']:.0f} s ({stall_share(r):.0%}{frm}) stalled"
+
+
 def train_time_pairs(results: dict, method: str, base: str) -> tuple[list, list]:
     """The (method run, baseline run) pairs whose training times compare: the same lambda and
-    seed, each trained at one thread count throughout, the same count for both; and the method's
-    runs whose time does not compare with the baseline's run at their rate point, each as (run,
-    why). A rate point the baseline has no run at is neither (nothing to compare with)."""
+    seed, each trained at one thread count throughout, the same count for both, neither stalled
+    beyond STALL_LIMIT of its time (paused, or sharing its core); and the method's runs whose
+    time does not compare with the baseline's run at their rate point, each as (run, why). A
+    rate point the baseline has no run at is neither (nothing to compare with)."""
     pairs, left = [], []
     bruns = runs_of(results, base)
     for r in runs_of(results, method):
@@ -924,6 +955,10 @@ def train_time_pairs(results: dict, method: str, base: str) -> tuple[list, list]
                             "unrecorded"))
         elif t != tb:
             left.append((r, f"{t} thread(s) against {tb}"))
+        elif _stalled(r):
+            left.append((r, _stall_words(r)))
+        elif _stalled(b):
+            left.append((r, f"the baseline run has {_stall_words(b)}"))
         else:
             pairs.append((r, b))
     return pairs, left

@@ -141,6 +141,17 @@ class Trainer:
         self._last_saved: Optional[int] = None
         self._ema_loss: Optional[float] = None
         self.train_time = 0.0
+        # Stall time: the part of train_time in which the process ran on no core (a suspended
+        # process, or one sharing its core with other work), summed per step as wall time
+        # minus process CPU time where positive. While a step runs, at least one thread of the
+        # process computes, so a healthy step's CPU time is about its wall time at any thread
+        # count (measured: 0.99 of it at one thread beside another training on a 2-core
+        # machine); a SIGSTOP pause inside a step is all stall. A lower bound where several
+        # threads run (a thread left waiting while another computes is not counted). CPU only: on a GPU the host
+        # thread may sleep in a synchronize, so None there. stall_from: the iteration it is
+        # counted from (a run resumed from a checkpoint that did not keep it).
+        self.stall_time: Optional[float] = 0.0 if self.device.type == "cpu" else None
+        self.stall_from = 0
         self._view_order: list[int] = []
         self.optimizer = self._make_optimizer()
         self.hooks = [registry.get("hooks", name)(self) for name in cfg.train.hooks]
@@ -307,9 +318,12 @@ class Trainer:
             ema_loss = self._ema_loss            # carried over a resume: the log is one curve
             while self.iteration < total:
                 it = self.iteration + 1
-                t0 = time.perf_counter()
+                t0, c0 = time.perf_counter(), time.process_time()
                 terms = self.step(it)
-                self.train_time += time.perf_counter() - t0
+                dt = time.perf_counter() - t0
+                self.train_time += dt
+                if self.stall_time is not None:
+                    self.stall_time += max(0.0, dt - (time.process_time() - c0))
                 if not math.isfinite(terms["loss"]):
                     raise NonFiniteError(
                         f"{self.out}: the loss is {terms['loss']} at iteration {it}; training "
@@ -328,6 +342,8 @@ class Trainer:
                         post["bits"] = f"{terms['bpp']:.2f}"
                     bar.set_postfix(post, refresh=False)
                     log.write(json.dumps({"it": it, "train_time": round(self.train_time, 3),
+                                          **({"stall_time": round(self.stall_time, 3)}
+                                             if self.stall_time is not None else {}),
                                           "loss_ema": round(ema_loss, 6), **terms,
                                           "anchors": self.model.n_anchors, "phase": self.phase},
                                          default=float) + "\n")
@@ -344,8 +360,8 @@ class Trainer:
 
     def _open_log(self):
         """The run's training log (``train_log.jsonl``: one JSON line every ``log_every``
-        iterations with the loss terms, PSNR, anchor and Gaussian counts, phase and the training
-        time so far), opened for appending. Lines past the current iteration (written after the
+        iterations with the loss terms, PSNR, anchor and Gaussian counts, phase, the training
+        time so far and, on the CPU, the stall time within it), opened for appending. Lines past the current iteration (written after the
         checkpoint a resumed run restarts from) are dropped first, so the log stays one curve."""
         path = self.out / TRAIN_LOG_NAME
         if path.is_file():
@@ -364,6 +380,7 @@ class Trainer:
         return {
             "iteration": self.iteration,
             "train_time": self.train_time,
+            "stall_time": self.stall_time, "stall_from": self.stall_from,
             "loss_ema": self._ema_loss,
             "thread_segments": self.thread_segments,
             "shapes": {k: tuple(v.shape) for k, v in self.model.per_anchor.items()},
@@ -438,6 +455,12 @@ class Trainer:
             segs.append([int(s["iteration"]), self.threads])
         self.thread_segments = segs
         self.train_time = s["train_time"]
+        if self.device.type != "cpu":
+            self.stall_time = None
+        elif s.get("stall_time") is None:       # not kept (older checkpoint, or a GPU's)
+            self.stall_time, self.stall_from = 0.0, int(s["iteration"])
+        else:
+            self.stall_time, self.stall_from = float(s["stall_time"]), int(s.get("stall_from", 0))
         self.phase = s["phase"]
         self.render_scale = s["render_scale"]
         self.voxel_size = s["voxel_size"]
