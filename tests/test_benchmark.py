@@ -111,3 +111,26 @@ def test_dataset_bd_keeps_each_reference_apart():
     assert rows[("hacpp", "baseline")]["mean_bd_rate"] == pytest.approx(-25.0)
     assert rows[("predict-gs+hacpp", "hacpp")]["mean_bd_rate"] == pytest.approx(-8.0)
     assert rows[("predict-gs+hacpp", "baseline")]["per_scene"]["alpha"]["bd_rate"] == -40.0
+
+
+def test_a_stalled_training_time_leaves_its_rows_train_mean_out():
+    """A run that stalled over 5% of its training time (paused, or sharing its core) leaves the
+    dataset row's training-time mean empty ('-', with a note) instead of averaging its wait."""
+    from baseline.eval.benchmark import dataset_table, format_benchmark
+
+    def run(m, t, stall):
+        return {"method": m, "lmbda": 0.004, "psnr": 25.0, "ssim": 0.9, "mb": 3.0, "fps": 50.0,
+                "groups": {"feature": 2 ** 20}, "train_time_s": t, "encode_s": 1.0,
+                "decode_s": 1.0, **({} if stall is None else {"stall_s": stall})}
+
+    per_scene = {"alpha": {"runs": [run("baseline", 1000.0, 10.0), run("hacpp", 1000.0, 300.0)]},
+                 "beta": {"runs": [run("baseline", 3000.0, None), run("hacpp", 2000.0, 20.0)]}}
+    rows = {r["method"]: r for r in dataset_table(per_scene)}
+    assert rows["baseline"]["train_s"] == pytest.approx(2000.0)   # 1% and unrecorded: kept
+    assert rows["hacpp"]["train_s"] is None and rows["hacpp"]["psnr"] == pytest.approx(25.0)
+    res = {"dataset": "d", "scenes": ["alpha", "beta"], "common_patches": [], "sets": [],
+           "table": list(rows.values()), "bd": [], "executor": "local", "executor_options": {},
+           "jobs_run": 0, "wall_s_this_invocation": 0.0, "failed": [], "complete": True}
+    assert "train (s) '-': a run of that row stalled over 5%" in format_benchmark(res)
+    rows["hacpp"]["train_s"] = 1.0
+    assert "stalled" not in format_benchmark(res)

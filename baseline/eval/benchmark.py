@@ -143,6 +143,12 @@ def _key(r: dict):
 
 def dataset_table(per_scene: dict) -> list[dict]:
     """Mean over the scenes per (method, lambda): the seed means first within each scene."""
+    from baseline.eval.report import stall_share, STALL_LIMIT
+
+    def timed(r):   # a training time that stalled (paused, or shared its core) measures no cost
+        sh = stall_share(r)
+        return None if sh is not None and sh > STALL_LIMIT else r["train_time_s"]
+
     acc: dict = {}
     for scene, res in per_scene.items():
         groups: dict = {}
@@ -156,7 +162,7 @@ def dataset_table(per_scene: dict) -> list[dict]:
                 "psnr": mean(lambda r: r["psnr"]), "ssim": mean(lambda r: r["ssim"]),
                 "lpips": mean(lambda r: r.get("lpips")), "mb": mean(lambda r: r["mb"]),
                 "feature_mb": mean(lambda r: r["groups"].get("feature", 0) / MB),
-                "train_s": mean(lambda r: r["train_time_s"]), "fps": mean(lambda r: r["fps"]),
+                "train_s": mean(timed), "fps": mean(lambda r: r["fps"]),
                 "encode_s": mean(lambda r: r["encode_s"]), "decode_s": mean(lambda r: r["decode_s"]),
                 "gaussians": mean(lambda r: r.get("gaussians_mean")), "runs": len(rs)}
     rows = []
@@ -210,7 +216,7 @@ def _f(v, nd):
 
 
 def format_benchmark(res: dict, markdown: bool = True) -> str:
-    from baseline.eval.report import method_label
+    from baseline.eval.report import method_label, STALL_LIMIT
 
     def name(m):
         return method_label(m, res.get("common_patches", ()))
@@ -259,6 +265,9 @@ def format_benchmark(res: dict, markdown: bool = True) -> str:
              f"Survey CSVs: `survey/{res['dataset']}/<scene>.csv`. Executor: {res['executor']} "
              f"{res['executor_options'] or ''}; runs done by this invocation: {res['jobs_run']}; "
              f"wall {res['wall_s_this_invocation']:.0f} s."]
+    if any(r["train_s"] is None for r in res["table"]):
+        parts.append(f"train (s) '-': a run of that row stalled over {STALL_LIMIT:.0%} of its "
+                     "training time (paused, or sharing its core; its scene's report names it).")
     if res["failed"]:
         parts.append("FAILED after retries: " + "; ".join(f"{n} ({e})" for n, e in res["failed"]))
     if not res["complete"]:
