@@ -489,6 +489,15 @@ def test_a_stalled_training_time_is_named_and_left_out_of_the_ratio():
     assert "1 pair(s)" in line and "the baseline run has 200 s (10%) stalled" in line
 
 
+def test_pgs_train_names_a_stalled_training_time(capsys):
+    from baseline.cli import _print_results
+    run = {"iterations": 10, "train_time_s": 100.0, "s_per_it": 10.0, "threads": 1, "anchors": 5}
+    for stall, named in ((20.0, True), (1.0, False), (None, False)):
+        _print_results(dict(run, **({} if stall is None else {"stall_s": stall})))
+        out = capsys.readouterr().out
+        assert ("20.0 s of it stalled: paused or sharing its core" in out) == named, out
+
+
 def test_a_thin_psnr_overlap_is_shown_and_named_in_the_verdict():
     res = stored_results()
     full = {b["method"]: b for b in compute_bd(res)}["predict-gs"]
