@@ -147,9 +147,9 @@ class Trainer:
         # process computes, so a healthy step's CPU time is about its wall time at any thread
         # count (measured: 0.99 of it at one thread beside another training on a 2-core
         # machine); a SIGSTOP pause inside a step is all stall. A lower bound where several
-        # threads run (a thread left waiting while another computes is not counted). CPU only: on a GPU the host
-        # thread may sleep in a synchronize, so None there. stall_from: the iteration it is
-        # counted from (a run resumed from a checkpoint that did not keep it).
+        # threads run (a thread left waiting while another computes is not counted). CPU only:
+        # on a GPU the host thread may sleep in a synchronize, so None there. stall_from: the
+        # iteration it is counted from (a run resumed from a checkpoint that did not keep it).
         self.stall_time: Optional[float] = 0.0 if self.device.type == "cpu" else None
         self.stall_from = 0
         self._view_order: list[int] = []
@@ -361,8 +361,9 @@ class Trainer:
     def _open_log(self):
         """The run's training log (``train_log.jsonl``: one JSON line every ``log_every``
         iterations with the loss terms, PSNR, anchor and Gaussian counts, phase, the training
-        time so far and, on the CPU, the stall time within it), opened for appending. Lines past the current iteration (written after the
-        checkpoint a resumed run restarts from) are dropped first, so the log stays one curve."""
+        time so far and, on the CPU, the stall time within it), opened for appending. Lines
+        past the current iteration (written after the checkpoint a resumed run restarts from)
+        are dropped first, so the log stays one curve."""
         path = self.out / TRAIN_LOG_NAME
         if path.is_file():
             keep = []
