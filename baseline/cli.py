@@ -86,11 +86,10 @@ def cmd_train(args) -> int:
 
 def _print_results(res: dict) -> None:
     t = res.get("test", {})
-    from baseline.eval.report import STALL_LIMIT, stall_share
+    from baseline.eval.report import stalled
 
-    sh = stall_share(res)
     stall = (f", {res['stall_s']:.1f} s of it stalled: paused or sharing its core"
-             if sh is not None and sh > STALL_LIMIT else "")
+             if stalled(res) else "")
     print(f"iterations {res['iterations']}  train {res['train_time_s']:.1f} s "
           f"({res['s_per_it']:.3f} s/it, {res['threads']} threads{stall})  anchors {res['anchors']}")
     if t:

@@ -143,11 +143,10 @@ def _key(r: dict):
 
 def dataset_table(per_scene: dict) -> list[dict]:
     """Mean over the scenes per (method, lambda): the seed means first within each scene."""
-    from baseline.eval.report import stall_share, STALL_LIMIT
+    from baseline.eval.report import stalled
 
     def timed(r):   # a training time that stalled (paused, or shared its core) measures no cost
-        sh = stall_share(r)
-        return None if sh is not None and sh > STALL_LIMIT else r["train_time_s"]
+        return None if stalled(r) else r["train_time_s"]
 
     acc: dict = {}
     for scene, res in per_scene.items():

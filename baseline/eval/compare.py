@@ -295,7 +295,7 @@ def _reference_stages(spec, scene_path, progress, stage) -> dict:
             "gaussians_mean": test.get("gaussians_mean"), "fps": test.get("fps"),
             "iterations": res["iterations"], "train_time_s": res["train_time_s"],
             "s_per_it": res["s_per_it"], "threads": res["threads"],
-            **_thread_history(res),
+            **_training_history(res),
             "device": res.get("device", "cpu"), "protocol": res.get("protocol", {}),
             "records_only": records_only(spec), "stages_run": done}
 
@@ -317,7 +317,7 @@ def _trained(spec: RunSpec) -> Optional[dict]:
     return None
 
 
-def _thread_history(res: dict) -> dict:
+def _training_history(res: dict) -> dict:
     """A resumed run's thread counts by stretch of iterations, when it had several, and its
     stall time (of the training time, the seconds it ran on no core) where it was kept."""
     h = res.get("threads_by_iteration")
@@ -592,7 +592,7 @@ def make_row(spec: RunSpec, res: dict, record: dict) -> dict:
         "attributes": enc.get("attributes"), "masks_on": enc.get("masks_on"),
         "iterations": res["iterations"], "train_time_s": res["train_time_s"],
         "s_per_it": res["s_per_it"], "threads": res["threads"],
-        **_thread_history(res),
+        **_training_history(res),
         "encode_s": enc["encode_s"], "decode_s": dec["decode_s"],
         "fps": dec["fps"], "fps_nocache": dec["fps_nocache"], "has_cache": dec["has_cache"],
         "psnr_nocache": dec["psnr_nocache"],

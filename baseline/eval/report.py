@@ -505,12 +505,12 @@ def speed_table(results: dict) -> Table:
              "Gaussians/view: neural Gaussians kept (mask on, opacity > 0) per test view, mean; "
              "a count, not a timing, and what rasterization time follows (change vs the "
              "baseline at the same rate point)."]
-    stalled = [r for r in ordered_runs(results) if _stalled(r)]
-    if stalled:
+    waited = [r for r in ordered_runs(results) if stalled(r)]
+    if waited:
         notes.append("Stalled (ran on no core: paused, or sharing its core with other work), "
                      "so its train time is not a measurement of its cost: "
                      + "; ".join(f"{label(results, r['method'])} {_lam(r)}: {_stall_words(r)}"
-                                 for r in stalled) + ".")
+                                 for r in waited) + ".")
     if any_cache:
         notes.append("FPS with the decoded-model cache (per-anchor predicted features computed once "
                      "at decode, inside the decode time) in 'FPS'; 'FPS w/o cache' recomputes "
@@ -923,7 +923,8 @@ def stall_share(r: dict) -> Optional[float]:
     return float(r["stall_s"]) / float(r["train_time_s"])
 
 
-def _stalled(r: dict) -> bool:
+def stalled(r: dict) -> bool:
+    """A run whose training time stalled beyond STALL_LIMIT: it measures no cost."""
     sh = stall_share(r)
     return sh is not None and sh > STALL_LIMIT
 
@@ -955,9 +956,9 @@ def train_time_pairs(results: dict, method: str, base: str) -> tuple[list, list]
                             "unrecorded"))
         elif t != tb:
             left.append((r, f"{t} thread(s) against {tb}"))
-        elif _stalled(r):
+        elif stalled(r):
             left.append((r, _stall_words(r)))
-        elif _stalled(b):
+        elif stalled(b):
             left.append((r, f"the baseline run has {_stall_words(b)}"))
         else:
             pairs.append((r, b))
