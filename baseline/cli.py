@@ -375,7 +375,7 @@ def cmd_compare(args) -> int:
                               report_only=args.report_only, reference=args.reference,
                               codec=args.codec, seeds=args.seeds,
                               panel_views=args.panel_views, paired_fps=args.paired_fps,
-                              lambda_for=args.lambda_for)
+                              lambda_for=args.lambda_for, untimed=args.untimed)
     except KeyboardInterrupt:
         print(f"\ninterrupted: finished stages are kept in {args.out}; run the same command "
               f"again to resume", file=sys.stderr)
@@ -681,6 +681,12 @@ def main(argv=None) -> int:
                    "(METHOD as for --only; repeat per method): where the curves meet, without "
                    "training every method at every lambda, e.g. --lambda-for HAC 0.008 0.004 "
                    "0.002 0.001")
+    p.add_argument("--untimed", action="append", nargs=2, default=None, metavar=("RUN", "WHY"),
+                   help="mark a finished run (its folder name under --out's runs/) whose training "
+                   "time is no measurement for a reason its record cannot show, e.g. a pause of "
+                   "a run trained before the stall time was kept: the report leaves it out of "
+                   "training-time ratios and says WHY; kept in its record (archives too); an "
+                   "empty WHY removes the mark")
     p.add_argument("--paired-fps", action="store_true",
                    help="time each contender's decoded file against the baseline's in one process "
                         "(middle rate point, lowest seed, 3 rounds, 1 thread) for the verdict's "

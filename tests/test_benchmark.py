@@ -114,8 +114,9 @@ def test_dataset_bd_keeps_each_reference_apart():
 
 
 def test_a_stalled_training_time_leaves_its_rows_train_mean_out():
-    """A run that stalled over 5% of its training time (paused, or sharing its core) leaves the
-    dataset row's training-time mean empty ('-', with a note) instead of averaging its wait."""
+    """A run that stalled over 5% of its training time (paused, or sharing its core), or marked
+    untimed, leaves the dataset row's training-time mean empty ('-', with a note) instead of
+    averaging its wait."""
     from baseline.eval.benchmark import dataset_table, format_benchmark
 
     def run(m, t, stall):
@@ -128,6 +129,8 @@ def test_a_stalled_training_time_leaves_its_rows_train_mean_out():
     rows = {r["method"]: r for r in dataset_table(per_scene)}
     assert rows["baseline"]["train_s"] == pytest.approx(2000.0)   # 1% and unrecorded: kept
     assert rows["hacpp"]["train_s"] is None and rows["hacpp"]["psnr"] == pytest.approx(25.0)
+    per_scene["beta"]["runs"][0]["untimed"] = "paused"           # a marked record: left out too
+    assert {r["method"]: r for r in dataset_table(per_scene)}["baseline"]["train_s"] is None
     res = {"dataset": "d", "scenes": ["alpha", "beta"], "common_patches": [], "sets": [],
            "table": list(rows.values()), "bd": [], "executor": "local", "executor_options": {},
            "jobs_run": 0, "wall_s_this_invocation": 0.0, "failed": [], "complete": True}

@@ -325,6 +325,26 @@ def test_archived_records_are_reported_without_retraining(scene, tmp_path):
     assert not specs[1].dir.exists()
     assert f"1 run(s) not run yet ({specs[1].label})" in (arch / "report.md").read_text()
     assert format_report(part).startswith("Incomplete comparison: 1 run(s) not run yet")
+    # --untimed marks a finished run's record (kept by the archive), an empty reason unmarks it
+    name = Path(base["run_dir"]).name
+    with pytest.raises(ValueError, match="'nope' is no run of this comparison"):
+        run_compare(scene, arch, vs=["entropy-factorized"], report_only=True,
+                    untimed=[["nope", "paused"]], **kw)
+    with pytest.raises(ValueError, match="has not finished"):
+        run_compare(scene, arch, vs=["entropy-factorized"], report_only=True,
+                    untimed=[[specs[1].dir.name, "paused"]], **kw)
+    assert not specs[1].dir.exists()
+    marked = run_compare(scene, arch, vs=["entropy-factorized"], report_only=True,
+                         untimed=[[name, " paused 14 min "]], **kw)
+    assert marked["runs"][0]["untimed"] == "paused 14 min"
+    assert json.loads((arch / "runs" / name / RECORD).read_text())["untimed"] == "paused 14 min"
+    again = run_compare(scene, arch, vs=["entropy-factorized"], report_only=True, **kw)
+    assert again["runs"][0]["untimed"] == "paused 14 min"
+    assert "paused 14 min" in (arch / "report.md").read_text()
+    unmarked = run_compare(scene, arch, vs=["entropy-factorized"], report_only=True,
+                           untimed=[[name, ""]], **kw)
+    assert unmarked["runs"][0]["untimed"] is None
+    assert "untimed" not in json.loads((arch / "runs" / name / RECORD).read_text())
     full = run_compare(scene, arch, vs=["entropy-factorized"], **kw)
     rows = {r["method"]: r for r in full["runs"]}
     assert rows[BASELINE]["stages_run"] == [] and rows[BASELINE]["records_only"]

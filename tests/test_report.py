@@ -463,30 +463,40 @@ def test_training_time_ratio_pairs_runs_of_one_rate_point_and_one_thread_count()
     assert not any(x.startswith("Predict-GS trains") for x in v)
 
 
-def test_a_stalled_training_time_is_named_and_left_out_of_the_ratio():
+def test_a_stalled_or_marked_training_time_is_named_and_left_out_of_the_ratio():
     """A run whose training time holds more than 5% in which it ran on no core (paused, or
-    sharing its core) neither enters the verdict's ratio nor passes unmarked in the speed table;
-    1% (a healthy run beside another) does not count."""
-    from baseline.eval.report import speed_table, train_time_pairs
+    sharing its core), or whose record is marked untimed (a pause it could not record), neither
+    enters the verdict's ratio nor passes unmarked in the speed table; 1% (a healthy run beside
+    another) does not count."""
+    from baseline.eval.report import speed_table, train_time_pairs, untimed
     res = stored_results()
     by = {(r["method"], r["lmbda"]): r for r in res["runs"]}
     for lm, t in zip(LAMBDAS, (1000.0, 2000.0, 4000.0)):
         by[("baseline", lm)].update(train_time_s=t, stall_s=0.01 * t)
         by[("predict-gs", lm)].update(train_time_s=1.5 * t, stall_s=0.01 * t)
     assert len(train_time_pairs(res, "predict-gs", "baseline")[0]) == 3
-    assert not any("Stalled" in n for n in speed_table(res).notes)
+    assert not any(n.startswith("Train time not") for n in speed_table(res).notes)
+    assert untimed(by[("baseline", LAMBDAS[0])]) is None
     by[("predict-gs", LAMBDAS[0])].update(stall_s=840.0, stall_from=3343)
     by[("baseline", LAMBDAS[1])]["stall_s"] = 200.0
     pairs, left = train_time_pairs(res, "predict-gs", "baseline")
     assert [r["lmbda"] for r, _ in pairs] == [LAMBDAS[2]]
     why = {r["lmbda"]: w for r, w in left}
     assert why[LAMBDAS[0]] == "840 s (56%, counted from iteration 3343) stalled"
-    assert why[LAMBDAS[1]] == "the baseline run has 200 s (10%) stalled"
-    note = next(n for n in speed_table(res).notes if n.startswith("Stalled"))
+    assert why[LAMBDAS[1]] == "the baseline run: 200 s (10%) stalled"
+    note = next(n for n in speed_table(res).notes if n.startswith("Train time not"))
     assert f"Predict-GS {LAMBDAS[0]:g}: 840 s (56%, counted from iteration 3343) stalled" in note
     assert f"HAC {LAMBDAS[1]:g}: 200 s (10%) stalled" in note
     line = next(x for x in verdict_lines(res) if x.startswith("Predict-GS trains"))
-    assert "1 pair(s)" in line and "the baseline run has 200 s (10%) stalled" in line
+    assert "1 pair(s)" in line and "the baseline run: 200 s (10%) stalled" in line
+    # a marked record (its stall share unrecorded or low) is left out with its reason
+    by[("predict-gs", LAMBDAS[2])].update(stall_s=None, untimed="paused 14 min")
+    pairs, left = train_time_pairs(res, "predict-gs", "baseline")
+    assert pairs == [] and dict((r["lmbda"], w) for r, w in left)[LAMBDAS[2]] == "paused 14 min"
+    assert f"Predict-GS {LAMBDAS[2]:g}: paused 14 min" in next(
+        n for n in speed_table(res).notes if n.startswith("Train time not"))
+    assert any(x.startswith("Predict-GS's training time compares with no HAC run")
+               for x in verdict_lines(res))
 
 
 def test_pgs_train_names_a_stalled_training_time(capsys):

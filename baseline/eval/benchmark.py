@@ -143,10 +143,10 @@ def _key(r: dict):
 
 def dataset_table(per_scene: dict) -> list[dict]:
     """Mean over the scenes per (method, lambda): the seed means first within each scene."""
-    from baseline.eval.report import stalled
+    from baseline.eval.report import untimed
 
-    def timed(r):   # a training time that stalled (paused, or shared its core) measures no cost
-        return None if stalled(r) else r["train_time_s"]
+    def timed(r):   # an untimed training time (stalled, or marked) measures no cost
+        return None if untimed(r) else r["train_time_s"]
 
     acc: dict = {}
     for scene, res in per_scene.items():
@@ -266,7 +266,8 @@ def format_benchmark(res: dict, markdown: bool = True) -> str:
              f"wall {res['wall_s_this_invocation']:.0f} s."]
     if any(r["train_s"] is None for r in res["table"]):
         parts.append(f"train (s) '-': a run of that row stalled over {STALL_LIMIT:.0%} of its "
-                     "training time (paused, or sharing its core; its scene's report names it).")
+                     "training time (paused, or sharing its core) or was marked untimed; its "
+                     "scene's report names it.")
     if res["failed"]:
         parts.append("FAILED after retries: " + "; ".join(f"{n} ({e})" for n, e in res["failed"]))
     if not res["complete"]:

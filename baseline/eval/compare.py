@@ -571,6 +571,31 @@ def _run_stages(spec, scene_path, lpips_fn, lpips, progress, stage, remeasure, c
     return row
 
 
+def mark_untimed(specs: list[RunSpec], name: str, why: str, lpips: Optional[str] = None,
+                 codec: Optional[dict] = None) -> None:
+    """Mark finished run ``name`` (its folder's name) as untimed in its record: its training
+    time holds something its record cannot show (e.g. a pause of the process in a run trained
+    before the stall time was kept), said in ``why``; an empty ``why`` removes the mark. The
+    report leaves such a run out of training-time ratios and names why (``report.untimed``);
+    the mark travels with the archived record and is dropped when the run is trained again."""
+    from baseline.guard import RunLock
+
+    spec = next((s for s in specs if s.dir.name == name), None)
+    if spec is None:
+        raise ValueError(f"--untimed: {name!r} is no run of this comparison (a folder name "
+                         f"under its runs/, e.g. {specs[0].dir.name if specs else '-'})")
+    if not is_finished(spec, lpips, codec):      # (checked before the lock makes its folder)
+        raise ValueError(f"--untimed: {name} has not finished: only a finished run's "
+                         f"training time can be marked")
+    with RunLock(spec.dir):
+        record = _read_json(spec.dir / RECORD)
+        if why.strip():
+            record["untimed"] = why.strip()
+        else:
+            record.pop("untimed", None)
+        _write_record(spec, record)
+
+
 def make_row(spec: RunSpec, res: dict, record: dict) -> dict:
     """One flat results row from a run's results.json and compare.json (no new measurement)."""
     enc, dec = record["encode"], record["decoded"]
@@ -616,6 +641,8 @@ def make_row(spec: RunSpec, res: dict, record: dict) -> dict:
         "census": record.get("census"),
         # the training curve's summary (baseline.eval.curves; absent from older records)
         "train_curve": record.get("train_curve"),
+        # why its training time is no measurement, where a user marked it (mark_untimed)
+        "untimed": record.get("untimed"),
     }
 
 
@@ -712,7 +739,8 @@ def run_compare(scene: str | Path, out: str | Path, vs: list[str] = (),
                 report_only: bool = False, reference: Optional[str] = None,
                 codec: Optional[str] = None, seeds: Optional[list[int]] = None,
                 panel_views: Optional[list[int]] = None, paired_fps: bool = False,
-                scope: Optional[str] = None, lambda_for: Optional[list[list]] = None) -> dict:
+                scope: Optional[str] = None, lambda_for: Optional[list[list]] = None,
+                untimed: Optional[list[list[str]]] = None) -> dict:
     """Run (or resume) a comparison; write ``out/results.json``, ``out/report.md`` and plots.
 
     ``only``: bring only the runs of these methods (``baseline``, a ``--vs`` value, or a name as
@@ -736,6 +764,8 @@ def run_compare(scene: str | Path, out: str | Path, vs: list[str] = (),
     method; default ``[0]``, ``[]`` for none).
     ``lambda_for``: ``[[METHOD, L, ...], ...]``, rate points of one method in place of
     ``lambdas`` (:func:`with_own_lambdas`).
+    ``untimed``: ``[[RUN, WHY], ...]``, finished runs (folder names under ``out/runs``) whose
+    training time is no measurement for a reason their record cannot show (:func:`mark_untimed`).
     """
     from baseline.eval.metrics import load_lpips
     from baseline.eval.report import format_report, write_report
@@ -795,6 +825,8 @@ def run_compare(scene: str | Path, out: str | Path, vs: list[str] = (),
         "missing": [],
         "runs": [],
     }
+    for name, why in untimed or ():
+        mark_untimed(specs, name, why, lp_id, codec_over)
     finished = [is_finished(s, lp_id, codec_over) for s in specs]   # reads each run's records once
     n_done = 0 if remeasure else sum(finished)
     if echo and methods:

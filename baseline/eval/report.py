@@ -505,11 +505,11 @@ def speed_table(results: dict) -> Table:
              "Gaussians/view: neural Gaussians kept (mask on, opacity > 0) per test view, mean; "
              "a count, not a timing, and what rasterization time follows (change vs the "
              "baseline at the same rate point)."]
-    waited = [r for r in ordered_runs(results) if stalled(r)]
+    waited = [r for r in ordered_runs(results) if untimed(r)]
     if waited:
-        notes.append("Stalled (ran on no core: paused, or sharing its core with other work), "
-                     "so its train time is not a measurement of its cost: "
-                     + "; ".join(f"{label(results, r['method'])} {_lam(r)}: {_stall_words(r)}"
+        notes.append("Train time not a measurement of its cost (stalled: ran on no core, paused "
+                     "or sharing its core with other work; or marked so in its record): "
+                     + "; ".join(f"{label(results, r['method'])} {_lam(r)}: {untimed(r)}"
                                  for r in waited) + ".")
     if any_cache:
         notes.append("FPS with the decoded-model cache (per-anchor predicted features computed once "
@@ -935,10 +935,17 @@ def _stall_words(r: dict) -> str:
     return f"{r['stall_s']:.0f} s ({stall_share(r):.0%}{frm}) stalled"
 
 
+def untimed(r: dict) -> Optional[str]:
+    """Why a run's training time is no measurement of its cost, or None where it stands:
+    stalled beyond STALL_LIMIT, or marked in its record (``pgs compare --untimed``) for what
+    the record cannot show."""
+    return _stall_words(r) if stalled(r) else r.get("untimed")
+
+
 def train_time_pairs(results: dict, method: str, base: str) -> tuple[list, list]:
     """The (method run, baseline run) pairs whose training times compare: the same lambda and
-    seed, each trained at one thread count throughout, the same count for both, neither stalled
-    beyond STALL_LIMIT of its time (paused, or sharing its core); and the method's runs whose
+    seed, each trained at one thread count throughout, the same count for both, neither
+    untimed (stalled beyond STALL_LIMIT of its time, or marked); and the method's runs whose
     time does not compare with the baseline's run at their rate point, each as (run, why). A
     rate point the baseline has no run at is neither (nothing to compare with)."""
     pairs, left = [], []
@@ -956,10 +963,10 @@ def train_time_pairs(results: dict, method: str, base: str) -> tuple[list, list]
                             "unrecorded"))
         elif t != tb:
             left.append((r, f"{t} thread(s) against {tb}"))
-        elif stalled(r):
-            left.append((r, _stall_words(r)))
-        elif stalled(b):
-            left.append((r, f"the baseline run has {_stall_words(b)}"))
+        elif untimed(r):
+            left.append((r, untimed(r)))
+        elif untimed(b):
+            left.append((r, f"the baseline run: {untimed(b)}"))
         else:
             pairs.append((r, b))
     return pairs, left
