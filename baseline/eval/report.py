@@ -963,10 +963,10 @@ def train_time_pairs(results: dict, method: str, base: str) -> tuple[list, list]
                             "unrecorded"))
         elif t != tb:
             left.append((r, f"{t} thread(s) against {tb}"))
-        elif untimed(r):
-            left.append((r, untimed(r)))
-        elif untimed(b):
-            left.append((r, f"the baseline run: {untimed(b)}"))
+        elif why := untimed(r):
+            left.append((r, why))
+        elif why := untimed(b):
+            left.append((r, f"the baseline run: {why}"))
         else:
             pairs.append((r, b))
     return pairs, left
