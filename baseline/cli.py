@@ -91,7 +91,8 @@ def _print_results(res: dict) -> None:
     stall = (f", {res['stall_s']:.1f} s of it stalled: paused or sharing its core"
              if stalled(res) else "")
     print(f"iterations {res['iterations']}  train {res['train_time_s']:.1f} s "
-          f"({res['s_per_it']:.3f} s/it, {res['threads']} threads{stall})  anchors {res['anchors']}")
+          f"({res['s_per_it']:.3f} s/it, {res['threads']} threads on {res.get('machine', '-')}"
+          f"{stall})  anchors {res['anchors']}")
     if t:
         lp = "unavailable" if t.get("lpips") is None else f"{t['lpips']:.4f}"
         print(f"test: PSNR {t['psnr']:.3f} dB  SSIM {t['ssim']:.4f}  LPIPS {lp}  "

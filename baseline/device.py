@@ -45,6 +45,30 @@ def device_name(dev: torch.device) -> str:
     return "cpu"
 
 
+def machine_name(dev: torch.device) -> str:
+    """The machine a run's time was taken on, for its record: the GPU's model on CUDA; on the
+    CPU the processor's model and its logical CPU count, e.g. ``AMD EPYC 7B13 (2 CPUs)``.
+
+    Two runs' times compare only when this is the same (it cannot tell two hosts of one model
+    apart, nor their load: stall time covers the part of that a run can see).
+    """
+    import os
+    import platform
+
+    if dev.type == "cuda":
+        return torch.cuda.get_device_name(dev)
+    model = ""
+    try:        # Linux: the model string; platform.processor() there is only "x86_64"
+        for line in open("/proc/cpuinfo", encoding="utf-8", errors="replace"):
+            if line.lower().startswith("model name"):
+                model = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    model = " ".join(model.split()) or platform.processor() or platform.machine() or "cpu"
+    return f"{model} ({os.cpu_count()} CPUs)"
+
+
 def make_generator(seed: int, device: torch.device) -> torch.Generator:
     """A generator on ``device`` (draws then happen where the tensors are, no transfer)."""
     return torch.Generator(device=device).manual_seed(seed)

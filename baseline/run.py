@@ -101,6 +101,11 @@ def _finish_run(trainer, scene, scene_path, out: Path, cfg: Config, evaluate_aft
         **({"threads_by_iteration": trainer.thread_segments}
            if len(trainer.thread_segments) > 1 else {}),
         "device": device_name(trainer.device),
+        "machine": trainer.machine,
+        # present when the run was resumed on another machine, or from a checkpoint that did
+        # not keep it (None): [first iteration, machine] per stretch
+        **({"machines_by_iteration": trainer.machine_segments}
+           if len(trainer.machine_segments) > 1 else {}),
         "backend": resolve_backend(cfg.train.rasterizer, trainer.model.xyz),
         "voxel_size": trainer.voxel_size,
         "anchors": trainer.model.n_anchors,

@@ -499,6 +499,29 @@ def test_a_stalled_or_marked_training_time_is_named_and_left_out_of_the_ratio():
                for x in verdict_lines(res))
 
 
+def test_training_times_of_two_machines_make_no_ratio():
+    """Two runs' training times compare only when their records name the same machine (a
+    record that names none, from before machines were kept, pairs as before); the protocol
+    lists each method's machine."""
+    from baseline.eval.report import protocol_lines, train_time_pairs
+    res = stored_results()
+    by = {(r["method"], r["lmbda"]): r for r in res["runs"]}
+    for lm, t in zip(LAMBDAS, (1000.0, 2000.0, 4000.0)):
+        by[("baseline", lm)].update(train_time_s=t, machine="AMD EPYC 7B13 (2 CPUs)")
+        by[("predict-gs", lm)].update(train_time_s=1.5 * t, machine="AMD EPYC 7B13 (2 CPUs)")
+    assert len(train_time_pairs(res, "predict-gs", "baseline")[0]) == 3
+    by[("predict-gs", LAMBDAS[0])]["machine"] = "Intel(R) Xeon(R) Processor (2 CPUs)"
+    del by[("predict-gs", LAMBDAS[1])]["machine"]
+    pairs, left = train_time_pairs(res, "predict-gs", "baseline")
+    assert sorted(r["lmbda"] for r, _ in pairs) == sorted(LAMBDAS[1:])
+    assert left == [(by[("predict-gs", LAMBDAS[0])],
+                     "trained on Intel(R) Xeon(R) Processor (2 CPUs), the baseline run on "
+                     "AMD EPYC 7B13 (2 CPUs)")]
+    machine = dict(protocol_lines(res))["machine"]
+    assert "Intel(R) Xeon(R) Processor (2 CPUs) (Predict-GS" in machine
+    assert f"- (Predict-GS {LAMBDAS[1]:g}, " in machine
+
+
 def test_pgs_train_names_a_stalled_training_time(capsys):
     from baseline.cli import _print_results
     run = {"iterations": 10, "train_time_s": 100.0, "s_per_it": 10.0, "threads": 1, "anchors": 5}
@@ -506,6 +529,8 @@ def test_pgs_train_names_a_stalled_training_time(capsys):
         _print_results(dict(run, **({} if stall is None else {"stall_s": stall})))
         out = capsys.readouterr().out
         assert ("20.0 s of it stalled: paused or sharing its core" in out) == named, out
+    _print_results(dict(run, machine="AMD EPYC 7B13 (2 CPUs)"))
+    assert "1 threads on AMD EPYC 7B13 (2 CPUs)" in capsys.readouterr().out
 
 
 def test_a_thin_psnr_overlap_is_shown_and_named_in_the_verdict():

@@ -96,6 +96,52 @@ def test_a_resume_at_another_thread_count_keeps_both_counts(scene_dir, tmp_path)
     assert _threads_shown({"threads": 1}) == "1"
 
 
+def test_a_resume_on_another_machine_keeps_both_machines(scene_dir, tmp_path, monkeypatch):
+    """A run resumed on another machine keeps which iterations ran on which (its training time
+    then sums two machines' speeds): through later checkpoints and into its results, where the
+    report leaves its time out of every ratio; a checkpoint that did not keep its machine shows
+    that stretch as unrecorded."""
+    import baseline.train.trainer as tr
+    from baseline.device import machine_name
+    from baseline.eval.report import _machines_shown, untimed
+    from baseline.run import _finish_run
+
+    here = machine_name(torch.device("cpu"))
+    assert here.endswith(" CPUs)") and len(here) > len(" (1 CPUs)")
+    scene = load_scene(scene_dir)
+    a = Trainer(_cfg(20, "train.checkpoint_every=0"), scene, tmp_path / "t", progress=False)
+    a.train(until=10)
+    assert a.machine == here and a.machine_segments == [[0, here]]
+    monkeypatch.setattr(tr, "machine_name", lambda dev: "Other CPU (8 CPUs)")
+    b = Trainer(_cfg(20, "train.checkpoint_every=0"), scene, tmp_path / "t", progress=False)
+    b.load_checkpoint(tmp_path / "t" / "checkpoint.pt")
+    b.train()
+    want = [[0, here], [10, "Other CPU (8 CPUs)"]]
+    assert b.machine_segments == want
+    c = Trainer(_cfg(20), scene, tmp_path / "t", progress=False)
+    c.load_checkpoint(tmp_path / "t" / "checkpoint.pt")
+    assert c.machine_segments == want               # the same machine again: no new stretch
+    res = _finish_run(b, scene, scene_dir, tmp_path / "t", b.cfg, evaluate_after=False)
+    assert res["machine"] == "Other CPU (8 CPUs)" and res["machines_by_iteration"] == want
+    assert untimed(dict(res, stall_s=0.0)) == (
+        f"resumed on another machine or from one not recorded: {here} from iteration 0, then "
+        "Other CPU (8 CPUs) from iteration 10")
+    old = torch.load(tmp_path / "t" / "checkpoint.pt", weights_only=False)
+    del old["machine_segments"]                    # written before machines were kept
+    torch.save(old, tmp_path / "old.pt")
+    d = Trainer(_cfg(20), scene, tmp_path / "d", progress=False)
+    d.load_checkpoint(tmp_path / "old.pt")
+    assert d.machine_segments == [[0, None], [20, "Other CPU (8 CPUs)"]]
+    assert _machines_shown({"machine": "X", "machines_by_iteration": d.machine_segments}) == \
+        "unrecorded from iteration 0, then Other CPU (8 CPUs) from iteration 20"
+    assert _machines_shown({"machine": "X"}) == "X" and _machines_shown({}) == "-"
+    # one machine throughout: no stretches in the results, and the time stands
+    e = Trainer(_cfg(5, "train.checkpoint_every=0"), scene, tmp_path / "e", progress=False)
+    e.train()
+    res = _finish_run(e, scene, scene_dir, tmp_path / "e", e.cfg, evaluate_after=False)
+    assert "machines_by_iteration" not in res and untimed(dict(res, stall_s=0.0)) is None
+
+
 def test_a_pause_inside_training_is_recorded_as_stall_time(scene_dir, tmp_path, monkeypatch):
     """Time in which the process ran on no core (here a sleep inside each step, as a SIGSTOP
     pause or a shared core) is counted as stall time, kept through a checkpoint into the log;

@@ -145,7 +145,7 @@ def dataset_table(per_scene: dict) -> list[dict]:
     """Mean over the scenes per (method, lambda): the seed means first within each scene."""
     from baseline.eval.report import untimed
 
-    def timed(r):   # an untimed training time (stalled, or marked) measures no cost
+    def timed(r):   # an untimed training time (stalled, marked, two machines) measures no cost
         return None if untimed(r) else r["train_time_s"]
 
     acc: dict = {}

@@ -318,11 +318,11 @@ def _trained(spec: RunSpec) -> Optional[dict]:
 
 
 def _training_history(res: dict) -> dict:
-    """A resumed run's thread counts by stretch of iterations, when it had several, and its
-    stall time (of the training time, the seconds it ran on no core) where it was kept."""
-    h = res.get("threads_by_iteration")
-    return {**({"threads_by_iteration": h} if h else {}),
-            **{k: res[k] for k in ("stall_s", "stall_from") if k in res}}
+    """The machine a run trained on, a resumed run's thread counts and machines by stretch of
+    iterations when it had several, and its stall time (of the training time, the seconds it
+    ran on no core), each where it was kept."""
+    return {k: res[k] for k in ("machine", "threads_by_iteration", "machines_by_iteration",
+                                "stall_s", "stall_from") if res.get(k) is not None}
 
 
 def records_only(spec: RunSpec) -> bool:

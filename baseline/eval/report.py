@@ -508,7 +508,8 @@ def speed_table(results: dict) -> Table:
     waited = [r for r in ordered_runs(results) if untimed(r)]
     if waited:
         notes.append("Train time not a measurement of its cost (stalled: ran on no core, paused "
-                     "or sharing its core with other work; or marked so in its record): "
+                     "or sharing its core with other work; marked so in its record; or resumed on "
+                     "another machine): "
                      + "; ".join(f"{label(results, r['method'])} {_lam(r)}: {untimed(r)}"
                                  for r in waited) + ".")
     if any_cache:
@@ -882,6 +883,7 @@ def protocol_lines(results: dict) -> list[tuple[str, str]]:
         ("training semantics", _semantics_line(runs)),
         ("iterations", per_method("iterations")),
         ("threads", per_method("threads", _threads_shown)),
+        ("machine", per_method("machine", _machines_shown)),
         ("device", per_method("device")),
         ("backend", per_method("backend")),
         ("evaluated on", per_method("split")),
@@ -937,9 +939,14 @@ def _stall_words(r: dict) -> str:
 
 def untimed(r: dict) -> Optional[str]:
     """Why a run's training time is no measurement of its cost, or None where it stands:
-    stalled beyond STALL_LIMIT, or marked in its record (``pgs compare --untimed``) for what
-    the record cannot show."""
-    return _stall_words(r) if stalled(r) else r.get("untimed")
+    stalled beyond STALL_LIMIT, marked in its record (``pgs compare --untimed``) for what the
+    record cannot show, or resumed on another machine (or from a checkpoint that did not keep
+    its machine): its time then sums stretches of different machines. Every reason that
+    holds, joined."""
+    why = [_stall_words(r) if stalled(r) else None, r.get("untimed") or None,
+           "resumed on another machine or from one not recorded: " + _machines_shown(r)
+           if r.get("machines_by_iteration") else None]
+    return "; ".join(w for w in why if w) or None
 
 
 def train_time_pairs(results: dict, method: str, base: str) -> tuple[list, list]:
@@ -967,6 +974,8 @@ def train_time_pairs(results: dict, method: str, base: str) -> tuple[list, list]
             left.append((r, why))
         elif why := untimed(b):
             left.append((r, f"the baseline run: {why}"))
+        elif r.get("machine") and b.get("machine") and r["machine"] != b["machine"]:
+            left.append((r, f"trained on {r['machine']}, the baseline run on {b['machine']}"))
         else:
             pairs.append((r, b))
     return pairs, left
@@ -995,11 +1004,21 @@ def _threads_shown(r: dict) -> str:
     """A run's thread count; a run resumed at another count names each from its first
     iteration ("1 from iteration 0, then 2 from iteration 2669"; "unrecorded" where the
     checkpoint it resumed from did not keep it)."""
-    segs = r.get("threads_by_iteration")
+    return _stretches_shown(r, "threads", "threads_by_iteration")
+
+
+def _machines_shown(r: dict) -> str:
+    """A run's machine (``-`` in records from before machines were kept); a run resumed on
+    another one names each from its first iteration, as _threads_shown."""
+    return _stretches_shown(r, "machine", "machines_by_iteration")
+
+
+def _stretches_shown(r: dict, key: str, by_iteration: str) -> str:
+    segs = r.get(by_iteration)
     if not segs:
-        return str(r.get("threads", "-"))
-    return ", then ".join(f"{'unrecorded' if t is None else t} from iteration {i}"
-                          for i, t in segs)
+        return str(r.get(key) or "-")
+    return ", then ".join(f"{'unrecorded' if v is None else v} from iteration {i}"
+                          for i, v in segs)
 
 
 def _semantics_line(runs: list) -> str:

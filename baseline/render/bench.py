@@ -38,7 +38,6 @@ from __future__ import annotations
 import argparse
 import math
 import os
-import platform
 import statistics
 import time
 from typing import Iterable, Optional, Sequence
@@ -46,6 +45,7 @@ from typing import Iterable, Optional, Sequence
 import torch
 
 from baseline.camera import Camera
+from baseline.device import machine_name
 
 DEFAULT_SIZES = ((50_000, 320, 240), (200_000, 640, 480))
 
@@ -190,8 +190,7 @@ def run_raster_bench(sizes: Iterable[Sequence[int]] = DEFAULT_SIZES,
                            forward_backward_median_s=None, pairs_per_s=None,
                            ratio_forward=None, ratio_forward_backward=None, skipped=None)
                 device = "cuda" if name == "gsplat" else "cpu"
-                row["device"] = torch.cuda.get_device_name() if device == "cuda" else \
-                    (platform.processor() or platform.machine() or "cpu")
+                row["device"] = machine_name(torch.device(device))
                 if name == "gsplat" and not torch.cuda.is_available():
                     row["skipped"] = "no CUDA device"
                 elif name == "reference" and reference_max_pairs is not None \

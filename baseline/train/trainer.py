@@ -26,7 +26,7 @@ from tqdm import tqdm
 
 from baseline import registry
 from baseline.config import Config, to_toml
-from baseline.device import make_generator, resolve_device
+from baseline.device import machine_name, make_generator, resolve_device
 from baseline.fileio import atomic_path, write_text_atomic
 from baseline.pipeline import render_view
 from baseline.scaffold.build import build_entropy, build_model, entropy_param_groups
@@ -97,6 +97,16 @@ def set_threads(n: int) -> int:
     return n
 
 
+def _extend_segments(segs: Optional[list], iteration: int, value) -> list[list]:
+    """A checkpoint's ``[first iteration, value]`` stretches (None: not kept, one unrecorded
+    stretch from 0), with a new stretch from ``iteration`` where ``value`` differs from the
+    last."""
+    out = [list(x) for x in segs or [[0, None]]]
+    if out[-1][1] != value:
+        out.append([int(iteration), value])
+    return out
+
+
 class Trainer:
     """Trains one model on one scene.
 
@@ -117,6 +127,10 @@ class Trainer:
         # [first iteration, threads] per stretch of training: a run resumed at another thread
         # count trained its iterations at several (its time per iteration mixes them)
         self.thread_segments: list[list] = [[0, self.threads]]
+        # [first iteration, machine] per stretch, likewise: a run resumed on another machine
+        # (or from a checkpoint that did not keep it) has a time that measures no one machine
+        self.machine = machine_name(self.device)
+        self.machine_segments: list[list] = [[0, self.machine]]
         torch.manual_seed(cfg.train.seed)
         np.random.seed(cfg.train.seed)
         random.seed(cfg.train.seed)
@@ -384,6 +398,7 @@ class Trainer:
             "stall_time": self.stall_time, "stall_from": self.stall_from,
             "loss_ema": self._ema_loss,
             "thread_segments": self.thread_segments,
+            "machine_segments": self.machine_segments,
             "shapes": {k: tuple(v.shape) for k, v in self.model.per_anchor.items()},
             "model": self.model.state_dict(),
             "entropy": self.entropy.state_dict(),
@@ -450,11 +465,12 @@ class Trainer:
         self.iteration = s["iteration"]
         self._last_saved = self.iteration
         self._ema_loss = s.get("loss_ema")     # checkpoints written before it was kept: None
-        # checkpoints written before the thread counts were kept: unrecorded (None) up to here
-        segs = [list(x) for x in s.get("thread_segments") or [[0, None]]]
-        if segs[-1][1] != self.threads:
-            segs.append([int(s["iteration"]), self.threads])
-        self.thread_segments = segs
+        # checkpoints written before thread counts / machines were kept: unrecorded (None) up
+        # to here
+        self.thread_segments = _extend_segments(s.get("thread_segments"), s["iteration"],
+                                                self.threads)
+        self.machine_segments = _extend_segments(s.get("machine_segments"), s["iteration"],
+                                                 self.machine)
         self.train_time = s["train_time"]
         if self.device.type != "cpu":
             self.stall_time = None
