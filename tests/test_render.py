@@ -581,6 +581,12 @@ def test_bench_rows():
     assert ref["ratio_forward_backward"] == pytest.approx(1.0)
     assert cpu["ratio_forward_backward"] == pytest.approx(
         ref["forward_backward_s"] / cpu["forward_backward_s"])
+    from baseline.device import machine_name
+    assert cpu["device"] == machine_name(torch.device("cpu"))
+    if not torch.cuda.is_available():   # gsplat asked for without CUDA: skipped, not a crash
+        g = run_raster_bench(sizes=((200, 32, 24),), backends=["gsplat"], threads=1,
+                             repeats=1)[0]
+        assert g["skipped"] == "no CUDA device" and g["device"] == "cuda (none here)"
 
 
 def test_kernels_are_compiled_by_a_child_that_imports_this_checkout(monkeypatch, tmp_path):

@@ -170,6 +170,10 @@ def run_raster_bench(sizes: Iterable[Sequence[int]] = DEFAULT_SIZES,
     torch.set_num_threads(n_threads)
     cpu_backend.set_num_threads(n_threads)
     rows: list[dict] = []
+    # named once; a gsplat row asked for on a machine without CUDA says so (it is skipped)
+    machine = {"cpu": machine_name(torch.device("cpu")),
+               "cuda": machine_name(torch.device("cuda")) if torch.cuda.is_available()
+               else "cuda (none here)"}
     try:
         ref_warm = False
         for n, width, height in sizes:
@@ -190,7 +194,7 @@ def run_raster_bench(sizes: Iterable[Sequence[int]] = DEFAULT_SIZES,
                            forward_backward_median_s=None, pairs_per_s=None,
                            ratio_forward=None, ratio_forward_backward=None, skipped=None)
                 device = "cuda" if name == "gsplat" else "cpu"
-                row["device"] = machine_name(torch.device(device))
+                row["device"] = machine[device]
                 if name == "gsplat" and not torch.cuda.is_available():
                     row["skipped"] = "no CUDA device"
                 elif name == "reference" and reference_max_pairs is not None \
