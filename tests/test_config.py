@@ -212,3 +212,28 @@ def test_iterations_flag_and_set_agree(tmp_path, capsys):
     assert "train.iterations" in capsys.readouterr().err
     assert main(["config", "--iterations", "123"]) == 0
     assert "iterations = 123" in capsys.readouterr().out
+
+
+def test_truck_hacpp_archive_is_what_its_command_plans_today(tmp_path):
+    """docs/RESULTS.md rebuilds the seeded truck comparison of HAC, Predict-GS, HAC++ and
+    Predict-GS+HAC++ from the records in docs/examples/truck-r4-cpu-hacpp-s2 with `--report-only`:
+    that holds only while the command plans exactly those run folders (same config hashes). A
+    change to what a config trains changes its hash, and the archived records must then no
+    longer be reported as this code's runs; this test names the change."""
+    from baseline.eval.compare import parse_methods, plan_runs, with_own_lambdas
+
+    common = ["cpu"]
+    methods = with_own_lambdas(
+        parse_methods(["predict-gs", "hacpp", "predict-gs+hacpp"]),
+        [["HAC", "0.008", "0.004", "0.002", "0.001"],
+         ["Predict-GS", "0.004", "0.002", "0.001", "0.0005"],
+         ["HAC++", "0.008", "0.004", "0.002", "0.001"]], common)
+    specs = plan_runs(tmp_path, methods, [0.004, 0.002, 0.001], common,
+                      ["data.resolution=4"], [0, 1])
+    planned = {s.dir.name for s in specs}
+    runs = Path(__file__).parent.parent / "docs/examples/truck-r4-cpu-hacpp-s2/runs"
+    archived = {p.name for p in runs.iterdir()}
+    assert len(planned) == 30 and len(archived) == 29
+    # every archived run is planned; the one planned run not archived was never trained
+    assert archived <= planned, sorted(archived - planned)
+    assert [n.rsplit("-", 1)[0] for n in planned - archived] == ["predict-gs-l0.0005-s1"]
