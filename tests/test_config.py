@@ -233,7 +233,6 @@ def test_truck_hacpp_archive_is_what_its_command_plans_today(tmp_path):
     planned = {s.dir.name for s in specs}
     runs = Path(__file__).parent.parent / "docs/examples/truck-r4-cpu-hacpp-s2/runs"
     archived = {p.name for p in runs.iterdir()}
-    assert len(planned) == 30 and len(archived) == 29
     # every archived run is planned; the one planned run not archived was never trained
     assert archived <= planned, sorted(archived - planned)
     assert [n.rsplit("-", 1)[0] for n in planned - archived] == ["predict-gs-l0.0005-s1"]
