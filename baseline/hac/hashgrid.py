@@ -364,6 +364,17 @@ def _kernel_meta(g: "GridLevels"):
     return meta
 
 
+def _float_meta(g: "GridLevels"):
+    """The float kernels' level description: ``hashed`` replaced by the level kinds."""
+    meta = getattr(g, "_kmeta_float", None)
+    if meta is None:
+        from . import _grid_kernels as K
+
+        res, rows, offsets, hashed, strides = _kernel_meta(g)
+        meta = g._kmeta_float = (res, rows, offsets, K.level_kinds(rows, hashed), strides)
+    return meta
+
+
 def _grid_kernels():
     """The numba grid kernels, sharing the CPU rasterizer's thread settings and launch lock."""
     from baseline.render import cpu as _cpu
@@ -379,7 +390,7 @@ class _GridKernel(torch.autograd.Function):
     @staticmethod
     def forward(ctx, table, u, grid):
         K, cpu = _grid_kernels()
-        meta = _kernel_meta(grid)
+        meta = _float_meta(grid)
         un = u.detach().numpy()
         tn = table.detach().contiguous().numpy()
         out = np.empty((un.shape[0], grid.n_levels * tn.shape[1]), dtype=np.float32)
@@ -401,7 +412,7 @@ class _GridKernel(torch.autograd.Function):
         with cpu._RUN_LOCK:
             nt = cpu._apply_threads()
             K.grid_bwd(u.numpy(), gout.detach().to(torch.float32).contiguous().numpy(),
-                       *_kernel_meta(ctx.grid), gt, nt)
+                       *_float_meta(ctx.grid), gt, nt)
         return torch.from_numpy(gt), None, None
 
 

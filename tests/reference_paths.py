@@ -1,0 +1,40 @@
+"""The reference forms of the training code's fast paths, swapped in together.
+
+Each fast path that claims the numbers of a simpler form keeps that form here (or names it),
+and :func:`reference_paths` puts all of them in place for the duration of a block, so that a
+test can train once with the product code and once with the references and compare the
+checkpoints bit for bit.
+
+* hash-grid float kernels: the point-by-point loop of ``reference_grid_kernels``.
+"""
+from __future__ import annotations
+
+import contextlib
+
+import reference_grid_kernels as R
+
+from baseline.hac import _grid_kernels as K
+from baseline.hac._grid_kernels import DENSE
+
+
+def _hashed(kinds):
+    return (kinds != DENSE).astype("uint8")
+
+
+def _grid_fwd(u, table, res, rows, offsets, kinds, strides, out):
+    R.grid_fwd(u, table, res, rows, offsets, _hashed(kinds), strides, out)
+
+
+def _grid_bwd(u, gout, res, rows, offsets, kinds, strides, gtable, nparts):
+    R.grid_bwd(u, gout, res, rows, offsets, _hashed(kinds), strides, gtable, nparts)
+
+
+@contextlib.contextmanager
+def reference_paths():
+    """Every fast path replaced by its reference form inside the block."""
+    with contextlib.ExitStack() as stack:
+        for mod, name, ref in ((K, "grid_fwd", _grid_fwd), (K, "grid_bwd", _grid_bwd)):
+            old = getattr(mod, name)
+            setattr(mod, name, ref)
+            stack.callback(setattr, mod, name, old)
+        yield
