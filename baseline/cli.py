@@ -352,7 +352,8 @@ def cmd_bench(args) -> int:
 
         print(format_train_bench(run_train_bench(args.run, steps=args.steps,
                                                  threads=args.threads or 1,
-                                                 anchors=args.anchors)))
+                                                 anchors=args.anchors, methods=args.vs,
+                                                 clock=args.clock)))
     elif args.what == "frame":
         from baseline.eval.fpsbench import bench_frame_files, format_frame_bench
 
@@ -668,6 +669,12 @@ def main(argv=None) -> int:
                    help="codec: entropy model(s) of the synthetic payload (default hac and hacpp)")
     p.add_argument("--steps", type=int, default=10,
                    help="train: timed training steps per run (after 2 untimed)")
+    p.add_argument("--vs", action="append", default=[], metavar="P1[+P2...]",
+                   help="train without --run: also a method's synthetic state (its patches, "
+                        "e.g. predict-gs), timed after HAC's in the same process (repeatable)")
+    p.add_argument("--clock", choices=["wall", "cpu"], default="wall",
+                   help="train: wall time, or the process's CPU time (at one thread: a step's "
+                        "own cost, whatever else shares the core)")
     p.set_defaults(fn=cmd_bench)
 
     p = sub.add_parser("compare", help="train/encode/decode methods side by side: tables, BD-rate, plots")

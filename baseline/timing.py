@@ -17,6 +17,23 @@ from contextlib import contextmanager
 from typing import Optional
 
 _ACTIVE: Optional["StageTimer"] = None
+_CLOCK = time.perf_counter
+
+
+def now() -> float:
+    """The stage clock's reading (seconds)."""
+    return _CLOCK()
+
+
+@contextmanager
+def clock(fn):
+    """Time stages with ``fn`` (e.g. ``time.process_time``) inside the block."""
+    global _CLOCK
+    prev, _CLOCK = _CLOCK, fn
+    try:
+        yield
+    finally:
+        _CLOCK = prev
 
 
 class StageTimer:
@@ -29,13 +46,13 @@ class StageTimer:
         self.times[name] = self.times.get(name, 0.0) + dt
 
     def backward_started(self) -> None:
-        self._bwd_start = time.perf_counter()
+        self._bwd_start = _CLOCK()
         self._bwd_marks = []
 
     def backward_finished(self) -> None:
         """Split the backward pass at the recorded gradient arrivals: each mark's stage runs from
         the previous mark (or the start) to it; the rest after the last mark is 'rest bwd'."""
-        end = time.perf_counter()
+        end = _CLOCK()
         if self._bwd_start is None:
             return
         prev = self._bwd_start
@@ -51,7 +68,7 @@ class StageTimer:
         self._bwd_start = None
 
     def mark(self, name: str) -> None:
-        self._bwd_marks.append((time.perf_counter(), name))
+        self._bwd_marks.append((_CLOCK(), name))
 
 
 def active() -> Optional[StageTimer]:
@@ -75,11 +92,11 @@ def stage(name: str):
     if t is None:
         yield
         return
-    t0 = time.perf_counter()
+    t0 = _CLOCK()
     try:
         yield
     finally:
-        t.add(name, time.perf_counter() - t0)
+        t.add(name, _CLOCK() - t0)
 
 
 def backward_mark(tensor, name: str) -> None:

@@ -39,10 +39,26 @@ def test_bench_train_on_a_run_folder(small_scene, tmp_path, capsys):
         assert abs(sum(st[p][i] for p in parts if p in st) - st["backward"][i]) < 1e-6
     assert (run / "checkpoint.pt").read_bytes() == before          # nothing written
     text = format_train_bench(res)
-    assert "step (wall)" in text and "context + rate" in text
+    assert "wall time" in text and "\nstep " in text and "context + rate" in text
     assert all(k in STAGE_ORDER for k in st)
     capsys.readouterr()
     assert main(["bench", "train", "--run", str(run), "--run", str(run), "--steps", "2",
                  "--threads", "1"]) == 0
     out = capsys.readouterr().out
     assert out.count("1.") > 0 and "/ run" in out               # the second run's ratio column
+
+
+def test_bench_train_synthetic_states_of_two_methods_on_the_cpu_clock(capsys):
+    """Without runs: HAC's synthetic state and Predict-GS's (every stage on from the first
+    step: the provider and the refiner are timed) in one process, on the CPU-time clock."""
+    res = run_train_bench([], steps=2, threads=1, warmup=1, anchors=3000,
+                          methods=["predict-gs"], clock="cpu")
+    hac, pgs = res["runs"]
+    assert (hac["label"], pgs["label"]) == ("HAC", "Predict-GS") and res["clock"] == "cpu"
+    assert "provider" not in hac["stages"] or max(hac["stages"]["provider"]) < 1e-3
+    assert min(pgs["stages"]["refiner"]) > 0 and min(pgs["stages"]["provider"]) > 0
+    text = format_train_bench(res)
+    assert "process CPU time" in text and "Predict-GS / HAC" in text
+    assert main(["bench", "train", "--anchors", "2000", "--steps", "1", "--threads", "1",
+                 "--clock", "cpu"]) == 0
+    assert "HAC: " in capsys.readouterr().out

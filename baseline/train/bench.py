@@ -19,7 +19,7 @@ import statistics
 import tempfile
 import time
 from pathlib import Path
-from typing import Optional
+from typing import Optional, Sequence
 
 STAGE_ORDER = [
     "hooks before", "view + ground truth", "prefilter", "context + rate", "decode",
@@ -31,18 +31,27 @@ NESTED = {"provider", "decoder MLPs", "refiner", "losses bwd", "rasterize bwd",
           "activations bwd", "decoder MLPs + refiner bwd", "rest bwd"}
 
 
-def _synthetic_trainer(n_anchors: int, threads: int, patches=("cpu",)):
+def _synthetic_trainer(n_anchors: int, threads: int, patches=("cpu",), folder=None):
+    """A state of ``n_anchors`` SfM points of the procedural scene (245 x 136, truck's ``-r 4``
+    size) in HAC's adaptive phase from the first step; with a method's patches (e.g.
+    ``predict-gs``) its every stage is on from the first step too (``predict.residual_from``
+    0, no progressive schedule). One scene per ``folder``: several methods share it."""
     from baseline.config import build_config
     from baseline.data.scene import load_scene
     from baseline.data.synthetic import make_scene
     from baseline.train.trainer import Trainer
 
-    d = Path(tempfile.mkdtemp(prefix="pgs-bench-train-"))
-    make_scene(d / "scene", n_views=12, width=245, height=136, seed=0, n_points=n_anchors)
-    cfg = build_config(list(patches), [f"train.threads={threads}", "model.voxel_size=0.001",
-                                       "entropy.noise_from=0", "entropy.context_from=0",
-                                       "train.log_every=1000"])
-    return Trainer(cfg, load_scene(d / "scene", progress=False), d / "run", progress=False)
+    d = Path(folder) if folder is not None else Path(tempfile.mkdtemp(prefix="pgs-bench-train-"))
+    if not (d / "scene").exists():
+        make_scene(d / "scene", n_views=12, width=245, height=136, seed=0, n_points=n_anchors)
+    sets = [f"train.threads={threads}", "model.voxel_size=0.001", "entropy.noise_from=0",
+            "entropy.context_from=0", "train.log_every=1000"]
+    cfg = build_config(list(patches), sets)
+    if "predict" in cfg.ext:
+        cfg = build_config(list(patches), sets + ["predict.residual_from=0",
+                                                  "predict.schedule=none", "predict.d_s=1.0"])
+    run = d / ("run-" + "+".join(patches))
+    return Trainer(cfg, load_scene(d / "scene", progress=False), run, progress=False)
 
 
 def _adaptive(trainer) -> None:
@@ -65,7 +74,8 @@ def _adaptive(trainer) -> None:
 def bench_trainer(trainer, steps: int = 10, warmup: int = 2, label: str = "") -> dict:
     """Time ``steps`` steps of ``trainer`` (after ``warmup`` untimed ones): per-step stage times
     and wall times in seconds."""
-    from baseline.timing import StageTimer, timing
+    from baseline import timing
+    from baseline.timing import StageTimer
 
     _adaptive(trainer)
     it = trainer.iteration
@@ -76,10 +86,10 @@ def bench_trainer(trainer, steps: int = 10, warmup: int = 2, label: str = "") ->
     for _ in range(steps):
         it += 1
         t = StageTimer()
-        with timing(t):
-            t0 = time.perf_counter()
+        with timing.timing(t):
+            t0 = timing.now()
             trainer.step(it)
-            walls.append(time.perf_counter() - t0)
+            walls.append(timing.now() - t0)
         per_step.append(dict(t.times))
     stages = {k: [s.get(k, 0.0) for s in per_step] for k in
               dict.fromkeys(k for s in per_step for k in s)}
@@ -89,22 +99,37 @@ def bench_trainer(trainer, steps: int = 10, warmup: int = 2, label: str = "") ->
 
 
 def run_train_bench(runs: list[str], steps: int = 10, threads: int = 1, warmup: int = 2,
-                    anchors: Optional[int] = None) -> dict:
-    """Bench each run folder (or a synthetic state of ``anchors`` points without runs)."""
+                    anchors: Optional[int] = None, methods: Sequence[str] = (),
+                    clock: str = "wall") -> dict:
+    """Bench each run folder, or without runs a synthetic state of ``anchors`` points for HAC
+    and for each of ``methods`` (patches joined by '+', e.g. ``predict-gs``), in one process.
+
+    ``clock``: "wall" (``time.perf_counter``) or "cpu" (the process's CPU time,
+    ``time.process_time``: at one thread, what the step itself costs, whatever else shares the
+    core; it leaves out waits, so it is no wall-time figure)."""
+    from baseline import timing
+    from baseline.eval.report import method_label
     from baseline.train.trainer import set_threads
 
+    if clock not in ("wall", "cpu"):
+        raise ValueError(f"clock must be 'wall' or 'cpu', got {clock!r}")
     n = set_threads(threads)
     results = []
-    if not runs:
-        tr = _synthetic_trainer(anchors or 100_000, threads)
-        results.append(bench_trainer(tr, steps, warmup, f"synthetic ({tr.model.n_anchors} anchors)"))
-    for r in runs:
-        from baseline.run import load_run
+    with timing.clock(time.process_time if clock == "cpu" else time.perf_counter):
+        if not runs:
+            folder = Path(tempfile.mkdtemp(prefix="pgs-bench-train-"))
+            for m in ("",) + tuple(methods):
+                patches = ("cpu",) + tuple(p for p in m.split("+") if p)
+                tr = _synthetic_trainer(anchors or 100_000, threads, patches, folder)
+                results.append(bench_trainer(tr, steps, warmup, method_label(m or "baseline")))
+        for r in runs:
+            from baseline.run import load_run
 
-        tr, _ = load_run(r, device="cpu")
-        set_threads(threads)
-        results.append(bench_trainer(tr, steps, warmup, Path(r).name))
-    return {"threads": n, "steps": steps, "warmup": warmup, "runs": results}
+            tr, _ = load_run(r, device="cpu")
+            set_threads(threads)
+            results.append(bench_trainer(tr, steps, warmup, Path(r).name))
+    return {"threads": n, "steps": steps, "warmup": warmup, "runs": results, "clock": clock,
+            "synthetic": not runs}
 
 
 def format_train_bench(res: dict) -> str:
@@ -121,15 +146,19 @@ def format_train_bench(res: dict) -> str:
         ratio = [(f"{v / vals[0]:.2f}x" if v is not None and vals[0] else "-") for v in vals[1:]]
         rows.append([("  " if k in NESTED else "") + k] + [("-" if v is None else f"{v:.1f}")
                                                            for v in vals] + ratio)
-    rows.append(["step (wall)"] + [f"{w:.1f}" for w in walls]
+    rows.append(["step"] + [f"{w:.1f}" for w in walls]
                 + [f"{w / walls[0]:.2f}x" for w in walls[1:]])
     widths = [max(len(str(x)) for x in col) for col in zip(head, *rows)]
     fmt = lambda r: "  ".join(str(c).ljust(w) if i == 0 else str(c).rjust(w)  # noqa: E731
                               for i, (c, w) in enumerate(zip(r, widths)))
-    lines = [f"training step, {res['threads']} thread(s), {res['steps']} timed steps after "
-             f"{res['warmup']} untimed (medians; indented rows are parts of the row above)",
-             "runs: " + "; ".join(f"{r['label']}: {r['anchors']} anchors from iteration "
-                                  f"{r['iteration'] - r['steps'] - res['warmup']}"
-                                  for r in runs), fmt(head), fmt(["-" * w for w in widths])]
+    clock = ("process CPU time" if res.get("clock") == "cpu" else "wall time")
+    synthetic = " (synthetic states)" if res.get("synthetic") else ""
+    lines = [f"training step{synthetic}, {res['threads']} thread(s), {res['steps']} timed steps after "
+             f"{res['warmup']} untimed, {clock} (medians; indented rows are parts of the row "
+             f"above)",
+             "runs: " + "; ".join(f"{r['label']}: {r['anchors']} anchors" + (
+                 "" if res.get("synthetic") else
+                 f" from iteration {r['iteration'] - r['steps'] - res['warmup']}")
+                 for r in runs), fmt(head), fmt(["-" * w for w in widths])]
     lines += [fmt(r) for r in rows]
     return "\n".join(lines)
