@@ -5,13 +5,17 @@ and :func:`reference_paths` puts all of them in place for the duration of a bloc
 test can train once with the product code and once with the references and compare the
 checkpoints bit for bit.
 
-* hash-grid float kernels: the point-by-point loop of ``reference_grid_kernels``.
+* hash-grid float kernels: the point-by-point loop of ``reference_grid_kernels``, on the
+  binarized table of :class:`~baseline.hac.hashgrid.STEBinary`'s forward, and its backward
+  as a ``torch.where``.
 """
 from __future__ import annotations
 
 import contextlib
 
+import numpy as np
 import reference_grid_kernels as R
+import torch
 
 from baseline.hac import _grid_kernels as K
 from baseline.hac._grid_kernels import DENSE
@@ -21,8 +25,16 @@ def _hashed(kinds):
     return (kinds != DENSE).astype("uint8")
 
 
-def _grid_fwd(u, table, res, rows, offsets, kinds, strides, out):
+def _grid_fwd(u, table, res, rows, offsets, kinds, strides, out, signs):
+    if signs:        # STEBinary's forward: +1 where >= 0, else -1 (NaN: -1)
+        table = np.where(table >= 0, 1.0, -1.0).astype(np.float32)
     R.grid_fwd(u, table, res, rows, offsets, _hashed(kinds), strides, out)
+
+
+def _ste_mask(params, grad):
+    """STEBinary's backward: ``torch.where(x.abs() <= 1.0, grad, 0.0)``."""
+    grad[...] = torch.where(torch.from_numpy(params).abs() <= 1.0, torch.from_numpy(grad),
+                            0.0).numpy()
 
 
 def _grid_bwd(u, gout, res, rows, offsets, kinds, strides, gtable, nparts):
@@ -33,7 +45,8 @@ def _grid_bwd(u, gout, res, rows, offsets, kinds, strides, gtable, nparts):
 def reference_paths():
     """Every fast path replaced by its reference form inside the block."""
     with contextlib.ExitStack() as stack:
-        for mod, name, ref in ((K, "grid_fwd", _grid_fwd), (K, "grid_bwd", _grid_bwd)):
+        for mod, name, ref in ((K, "grid_fwd", _grid_fwd), (K, "grid_bwd", _grid_bwd),
+                               (K, "ste_mask", _ste_mask)):
             old = getattr(mod, name)
             setattr(mod, name, ref)
             stack.callback(setattr, mod, name, old)

@@ -442,7 +442,10 @@ def test_float_kernels_equal_the_point_by_point_loop_bit_for_bit(small_grid, lay
         want = np.empty((len(uc), gl.output_dim), np.float32)
         got = np.full_like(want, 7.0)
         R.grid_fwd(uc, table, *_kernel_meta(gl), want)
-        K.grid_fwd(uc, table, *_float_meta(gl), got)
+        K.grid_fwd(uc, table, *_float_meta(gl), got, False)
+        assert np.array_equal(got.view(np.int32), want.view(np.int32)), name
+        got[:] = 7.0                       # the parameters read as their signs
+        K.grid_fwd(uc, gl.params.detach().numpy(), *_float_meta(gl), got, True)
         assert np.array_equal(got.view(np.int32), want.view(np.int32)), name
         gout = rng.standard_normal(want.shape).astype(np.float32)
         gw, gg = np.zeros_like(table), np.zeros_like(table)

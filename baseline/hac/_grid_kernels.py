@@ -180,10 +180,18 @@ def _level2(ux, uy, r, kind, nr, sy):
     return (i0, i1, i2, i3), (w0, w1, w2, w3), wn
 
 
+@njit(cache=True, inline="always")
+def _entry(v, signs):
+    if signs:
+        return np.float32(1.0) if v >= 0 else np.float32(-1.0)
+    return v
+
+
 @njit(cache=True, error_model="numpy")
-def _fwd_block(u, table, res, rows, offsets, kinds, strides, out, lo, hi, inside):
+def _fwd_block(u, table, res, rows, offsets, kinds, strides, out, lo, hi, inside, signs):
     """Forward of points [lo, hi): level by level (each level's constants stay in registers),
-    points inside a level in order. ``inside`` [hi - lo] bool scratch."""
+    points inside a level in order. ``inside`` [hi - lo] bool scratch; ``signs``: read each
+    entry as +1 where it is >= 0, else -1 (NaN: -1), the binarization of the STE."""
     dim = u.shape[1]
     L = res.shape[0]
     F = table.shape[1]
@@ -214,7 +222,7 @@ def _fwd_block(u, table, res, rows, offsets, kinds, strides, out, lo, hi, inside
                     # started at +0 unchanged (the reference skips it: the same bits)
                     a = np.float32(0.0)
                     for c in range(8):
-                        a += w[c] * table[off + ix[c], k]
+                        a += w[c] * _entry(table[off + ix[c], k], signs)
                     out[i, base + k] = a * inv
         else:
             for i in range(lo, hi):
@@ -227,20 +235,21 @@ def _fwd_block(u, table, res, rows, offsets, kinds, strides, out, lo, hi, inside
                 for k in range(F):
                     a = np.float32(0.0)
                     for c in range(4):
-                        a += w[c] * table[off + ix[c], k]
+                        a += w[c] * _entry(table[off + ix[c], k], signs)
                     out[i, base + k] = a * inv
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
-def grid_fwd(u, table, res, rows, offsets, kinds, strides, out):
+def grid_fwd(u, table, res, rows, offsets, kinds, strides, out, signs):
     """``out[i, l*F:(l+1)*F] = sum_c w_c table[idx_c] / sum_c w_c`` for every point and level
-    (zeros for points outside [0, 1]); ``table`` entries must be finite (the binarized +-1)."""
+    (zeros for points outside [0, 1]). ``table`` entries must be finite (the binarized +-1),
+    or with ``signs`` the float parameters, read as their binarization (+1 where >= 0)."""
     n = u.shape[0]
     for ch in prange((n + _CHUNK - 1) // _CHUNK):
         lo = ch * _CHUNK
         hi = min(n, lo + _CHUNK)
         inside = np.empty(hi - lo, np.bool_)
-        _fwd_block(u, table, res, rows, offsets, kinds, strides, out, lo, hi, inside)
+        _fwd_block(u, table, res, rows, offsets, kinds, strides, out, lo, hi, inside, signs)
 
 
 @njit(cache=True, error_model="numpy")
@@ -313,6 +322,17 @@ def grid_bwd(u, gout, res, rows, offsets, kinds, strides, gtable, nparts):
         for p in range(nparts):
             for k in range(F):
                 gtable[r, k] += buf[p, r, k]
+
+
+@njit(cache=True, parallel=True, error_model="numpy")
+def ste_mask(params, grad):
+    """The straight-through binarization's backward in place: ``grad`` [R, F] kept where
+    ``|params| <= 1``, else 0 (NaN: 0)."""
+    R, F = grad.shape
+    for r in prange(R):
+        for k in range(F):
+            if not (abs(params[r, k]) <= 1.0):
+                grad[r, k] = 0.0
 
 
 # ------------------------------------------------------------------ exact (coding) path

@@ -271,16 +271,22 @@ class GridLevels(nn.Module):
         idx += self._offsets.to(self._index_dtype)
         return idx.permute(1, 2, 0), w.permute(1, 2, 0)
 
-    def encode(self, u: torch.Tensor, table: torch.Tensor, exact: bool = False) -> torch.Tensor:
+    def encode(self, u: torch.Tensor, table: torch.Tensor, exact: bool = False,
+               signs: bool = False) -> torch.Tensor:
         """Interpolated features [n, L * n_features] of normalised points ``u`` [n, dim].
 
-        ``table`` is the (binarised) parameter table [total_rows, n_features] in ``u``'s dtype.
+        ``table`` is the (binarised) parameter table [total_rows, n_features] in ``u``'s dtype;
+        with ``signs`` the float parameters, binarised here (straight-through, as
+        :func:`binarize`; the numba kernels do it as they read and mask the gradient in their
+        backward, so no binarised table is written).
         ``exact`` (float64 only): integer corner weights (see :meth:`corner_indices`), so the
         weighted sums are exact and order-free; the one rounding left is the final division by
         the weight sum, a correctly rounded elementwise operation.
         """
         if not exact and _use_kernels(u, table):
-            return _GridKernel.apply(table, u.contiguous(), self)
+            return _GridKernel.apply(table, u.contiguous(), self, signs)
+        if signs:
+            table = binarize(table).to(u.dtype)
         if exact and _use_exact_kernel(u, table):
             return _grid_exact_kernel(self, u, table)
         n = u.shape[0]
@@ -385,10 +391,14 @@ def _grid_kernels():
 
 
 class _GridKernel(torch.autograd.Function):
-    """Fused interpolation of one :class:`GridLevels` (numba); gradient to the table only."""
+    """Fused interpolation of one :class:`GridLevels` (numba); gradient to the table only.
+
+    ``signs``: ``table`` holds the float parameters, read as their binarization, and the
+    gradient is the straight-through one (zero where ``|table| > 1``): :class:`STEBinary` and
+    this function in one, the same values and gradients."""
 
     @staticmethod
-    def forward(ctx, table, u, grid):
+    def forward(ctx, table, u, grid, signs=False):
         K, cpu = _grid_kernels()
         meta = _float_meta(grid)
         un = u.detach().numpy()
@@ -396,24 +406,27 @@ class _GridKernel(torch.autograd.Function):
         out = np.empty((un.shape[0], grid.n_levels * tn.shape[1]), dtype=np.float32)
         with cpu._RUN_LOCK:
             cpu._apply_threads()
-            K.grid_fwd(un, tn, *meta, out)
-        ctx.save_for_backward(u)
+            K.grid_fwd(un, tn, *meta, out, signs)
+        ctx.save_for_backward(u, table if signs else None)
         ctx.grid = grid
+        ctx.signs = signs
         ctx.table_shape = tuple(table.shape)
         return torch.from_numpy(out)
 
     @staticmethod
     def backward(ctx, gout):
         if not ctx.needs_input_grad[0]:
-            return None, None, None
-        (u,) = ctx.saved_tensors
+            return None, None, None, None
+        u, table = ctx.saved_tensors
         K, cpu = _grid_kernels()
         gt = np.zeros(ctx.table_shape, dtype=np.float32)
         with cpu._RUN_LOCK:
             nt = cpu._apply_threads()
             K.grid_bwd(u.numpy(), gout.detach().to(torch.float32).contiguous().numpy(),
                        *_float_meta(ctx.grid), gt, nt)
-        return torch.from_numpy(gt), None, None
+            if ctx.signs:
+                K.ste_mask(table.detach().contiguous().numpy(), gt)
+        return torch.from_numpy(gt), None, None, None
 
 
 class _WeightedGather(torch.autograd.Function):
@@ -641,6 +654,10 @@ class BinaryHashGrid(nn.Module):
         if not xyz.is_floating_point():
             xyz = xyz.float()
         u = xyz if normalized else self.normalize(xyz)
+        if _use_kernels(u, next(iter(self.grids.values())).params):
+            # the kernels binarize as they read: the parameters go in as they are
+            return self._query(u, {k: g.params for k, g in self.grids.items()}, exact=False,
+                               signs=True)
         tables = {k: t.to(u.dtype) for k, t in self.binary_tables().items()}
         return self._query(u, tables, exact=False)
 
@@ -668,7 +685,8 @@ class BinaryHashGrid(nn.Module):
         out = self._query(u, tables, exact=True)
         return torch.round(out * float(1 << FEATURE_BITS))
 
-    def _query(self, u: torch.Tensor, tables: Dict[str, torch.Tensor], exact: bool) -> torch.Tensor:
+    def _query(self, u: torch.Tensor, tables: Dict[str, torch.Tensor], exact: bool,
+               signs: bool = False) -> torch.Tensor:
         outs = []
         # The numba kernels need no temporaries per corner: one call for all points.
         t0 = next(iter(tables.values()))
@@ -676,7 +694,7 @@ class BinaryHashGrid(nn.Module):
         step = max(u.shape[0], 1) if fused else self.chunk
         for s in range(0, max(u.shape[0], 1), step):
             uc = u[s:s + step]
-            parts = [g.encode(uc[:, list(self._axes[k])], tables[k], exact=exact)
+            parts = [g.encode(uc[:, list(self._axes[k])], tables[k], exact=exact, signs=signs)
                      for k, g in self.grids.items()]
             out = torch.cat(parts, dim=-1)
             if self.oob == "all":
