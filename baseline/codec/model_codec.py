@@ -37,7 +37,7 @@ import numpy as np
 import torch
 import torch.nn as nn
 
-from baseline.codec.container import BitstreamError, read_container, read_file_bytes, write_container
+from baseline.codec.container import BitstreamError, read_container_sized, write_container
 from baseline.codec.header import CODING_DEFAULTS, check_header, digest_sections
 from baseline.codec.masks import decode_mask_patterns, encode_mask_patterns, mask_pattern_counts
 from baseline.codec.lattice import (decode_lattice, encode_lattice, lattice_coordinates,
@@ -282,8 +282,7 @@ def _decode_model(path, max_bytes) -> DecodedModel:
     from baseline.scaffold.model import AnchorModel
 
     t0 = time.perf_counter()
-    header, sections = read_container(path)
-    size = Path(path).stat().st_size if not isinstance(path, (bytes, bytearray)) else len(path)
+    header, sections, size = read_container_sized(path)
     facts = check_header(header, sections, size, max_bytes)
     declare_precision(facts.weight_dtype)
     N, K = facts.n_anchors, facts.n_offsets
@@ -441,19 +440,13 @@ def section_label(name: str, header: dict) -> str:
 def file_info(path: str | Path) -> dict:
     """Per-section and per-group allocation read from the file itself (its header checked as
     the decoder checks it)."""
-    raw = read_file_bytes(path)
+    header, sections, total = read_container_sized(path)
     try:
-        header, sections = read_container(raw)
-    except BitstreamError as e:
-        msg = str(e).replace("<bytes>", str(path), 1)
-        raise BitstreamError(msg if msg.startswith(str(path)) else f"{path}: {msg}") from None
-    try:
-        check_header(header, sections, len(raw), max_bytes=1 << 62)   # reads, allocates nothing
+        check_header(header, sections, total, max_bytes=1 << 62)   # reads, allocates nothing
     except BitstreamError as e:
         raise BitstreamError(f"{path}: {e}") from None
     rows = [{"section": n, "label": section_label(n, header), "bytes": len(b),
              "group": section_group(n, header)} for n, b in sections.items()]
-    total = len(raw)
     groups: dict[str, int] = {}
     for r in rows:
         groups[r["group"]] = groups.get(r["group"], 0) + r["bytes"]

@@ -220,7 +220,11 @@ def load_lpips(weights: str | Path | None, device: str | torch.device = "cpu"
     for p in lpips_paths(weights):
         if not p.is_file():
             return None, f"{LPIPS_UNAVAILABLE} (no file at {p})"
-        part = torch.load(p, map_location="cpu", weights_only=True)
+        from baseline.fileio import open_checked
+
+        f, _, _ = open_checked(p, "LPIPS weights")
+        with f:
+            part = torch.load(f, map_location="cpu", weights_only=True)
         if isinstance(part, dict) and "state_dict" in part and isinstance(part["state_dict"], dict):
             part = part["state_dict"]
         if not isinstance(part, dict):

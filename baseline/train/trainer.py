@@ -27,7 +27,7 @@ from tqdm import tqdm
 from baseline import registry
 from baseline.config import Config, to_toml
 from baseline.device import machine_name, make_generator, resolve_device
-from baseline.fileio import atomic_path, write_text_atomic
+from baseline.fileio import atomic_path, open_checked, read_text_bounded, write_text_atomic
 from baseline.pipeline import render_view
 from baseline.scaffold.build import build_entropy, build_model, entropy_param_groups
 from baseline.timing import active as active_timer
@@ -381,7 +381,7 @@ class Trainer:
         path = self.out / TRAIN_LOG_NAME
         if path.is_file():
             keep = []
-            for line in path.read_text().splitlines():
+            for line in read_text_bounded(path, "a training log").splitlines():
                 try:
                     if json.loads(line)["it"] <= self.iteration:
                         keep.append(line)
@@ -433,8 +433,10 @@ class Trainer:
 
     def load_checkpoint(self, path: str | Path) -> None:
         path = Path(path)
+        f, _, _ = open_checked(path, "a checkpoint")   # a regular file under PGS_MAX_FILE_MB
         try:
-            s = torch.load(path, map_location="cpu", weights_only=False)
+            with f:
+                s = torch.load(f, map_location="cpu", weights_only=False)
         except Exception as e:
             raise ValueError(f"cannot read checkpoint {path}: {e}") from None
         for k, shape in s["shapes"].items():
