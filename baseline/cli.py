@@ -89,6 +89,7 @@ def cmd_train(args) -> int:
 
 def _print_results(res: dict) -> None:
     t = res.get("test", {})
+    from baseline.eval.metrics import format_psnr
     from baseline.eval.report import stalled
 
     stall = (f", {res['stall_s']:.1f} s of it stalled: paused or sharing its core"
@@ -98,7 +99,7 @@ def _print_results(res: dict) -> None:
           f"{stall})  anchors {res['anchors']}")
     if t:
         lp = "unavailable" if t.get("lpips") is None else f"{t['lpips']:.4f}"
-        print(f"test: PSNR {t['psnr']:.3f} dB  SSIM {t['ssim']:.4f}  LPIPS {lp}  "
+        print(f"test: PSNR {format_psnr(t['psnr'], 3)}  SSIM {t['ssim']:.4f}  LPIPS {lp}  "
               f"FPS {t['fps']:.1f}  Gaussians/view {t['gaussians_mean']:.0f}")
 
 
@@ -218,8 +219,10 @@ def cmd_render(args) -> int:
     r = Renderable(args.target, args.scene, device=args.device)
     write_marker(out, "render", args.target)
     res = r.evaluate(args.split, render_dir=out)
+    from baseline.eval.metrics import format_psnr
+
     print(f"rendered {res['n_views']} {args.split} views to {out} "
-          f"(PSNR {res['psnr']:.3f} dB, FPS {res['fps']:.1f})")
+          f"(PSNR {format_psnr(res['psnr'], 3)}, FPS {res['fps']:.1f})")
     return 0
 
 
@@ -254,8 +257,10 @@ def cmd_encode(args) -> int:
         import dataclasses
 
         cfg = dataclasses.replace(cfg, codec=dataclasses.replace(cfg.codec, **codec_over))
+    from baseline.data.scene import scene_bounds
+
     st = encode_model(cfg, trainer.model, trainer.entropy, args.output,
-                      extra_header=file_header(scene, scene_path))
+                      extra_header=file_header(scene, scene_path), scene_bounds=scene_bounds(scene))
     print(format_info(file_info(args.output)))
     print(f"wrote {args.output}: {st['bytes']} bytes ({st['bytes'] / 2**20:.4f} MB), "
           f"{st['anchors']} anchors, encode {st['encode_s']:.2f} s")
@@ -274,6 +279,7 @@ def cmd_decode(args) -> int:
     from baseline.codec.model_codec import decode_model
     from baseline.contracts import feature_cache
     from baseline.eval.export import export_run_ply, export_sh_ply
+    from baseline.eval.metrics import format_psnr
     from baseline.run import Renderable, write_json_atomic
 
     import shutil
@@ -310,7 +316,8 @@ def cmd_decode(args) -> int:
         if args.render != "none":
             res[args.render] = r.evaluate(args.render, render_dir=out / "renders" / args.render)
             t = res[args.render]
-            print(f"{args.render}: PSNR {t['psnr']:.3f} dB  SSIM {t['ssim']:.4f}  FPS {t['fps']:.1f}")
+            print(f"{args.render}: PSNR {format_psnr(t['psnr'], 3)}  SSIM {t['ssim']:.4f}  "
+                  f"FPS {t['fps']:.1f}")
             prov = feature_cache(r.model)
             if prov is not None:             # Predict-GS: FPS without the decoded-model f_c cache
                 prov.clear_cache()
@@ -324,6 +331,11 @@ def cmd_decode(args) -> int:
         model.to("cpu")
         ply = out / "point_cloud.ply"
         scene = r.scene if r is not None else _scene_of(dec, args.scene)
+        if scene is not None and r is None:        # (Renderable checked its own)
+            from baseline.data.scene import scene_bounds
+            from baseline.scaffold.model import check_bounds
+
+            check_bounds(model, str(args.file), *scene_bounds(scene))
         if scene is not None and scene.train_cameras:
             model.unbake()
             res["ply"] = export_sh_ply(model, scene, ply, sh_degree=args.sh_degree,
@@ -369,10 +381,13 @@ def _scene_of(dec, scene_override):
 
 
 def _print_ply(r: dict) -> None:
+    from baseline.eval.metrics import format_psnr
+
     print(f"wrote {r['gaussians']} Gaussians to {r['path']} (the union over the training views "
           f"of those drawn, {r['drawn_per_view']:.0f} per view; SH degree {r['sh_degree']}); "
-          f"fidelity on {r['views']} test views: {r['psnr_vs_model']:.2f} dB against the model's "
-          f"render, {r['psnr_ply']:.2f} dB against the ground truth (model {r['psnr_model']:.2f})")
+          f"fidelity on {r['views']} test views: {format_psnr(r['psnr_vs_model'])} against the "
+          f"model's render, {format_psnr(r['psnr_ply'])} against the ground truth (model "
+          f"{format_psnr(r['psnr_model'])})")
 
 
 def cmd_export_ply(args) -> int:
@@ -891,7 +906,7 @@ def main(argv=None) -> int:
     p.set_defaults(fn=cmd_demo)
 
     args = ap.parse_args(argv)
-    from baseline import registry
+    from baseline import memory, registry  # noqa: F401 - memory: imported before any failure
 
     try:
         registry.ensure_loaded()
@@ -906,13 +921,22 @@ def main(argv=None) -> int:
     except (ValueError, FileNotFoundError, OSError) as e:
         print(f"pgs {args.cmd}: error: {_one_line(e)}", file=sys.stderr)
         return 2
-    except MemoryError:
-        print(f"pgs {args.cmd}: error: out of memory", file=sys.stderr)
+    except (MemoryError, RuntimeError) as e:
+        if not memory.is_allocation_failure(e):
+            return _internal_error(args, e)
+        # an allocation no step named (AllocationError names its own)
+        msg = str(e) if isinstance(e, memory.AllocationError) else memory.describe(
+            f"in pgs {args.cmd}", e)
+        print(f"pgs {args.cmd}: error: {_one_line(msg)}", file=sys.stderr)
         return 2
     except Exception as e:  # noqa: BLE001 - never a traceback to a user; say it is a bug
-        print(f"pgs {args.cmd}: internal error ({type(e).__name__}: {_one_line(e)}); please "
-              f"report it with the command that caused it", file=sys.stderr)
-        return 2
+        return _internal_error(args, e)
+
+
+def _internal_error(args, e: BaseException) -> int:
+    print(f"pgs {args.cmd}: internal error ({type(e).__name__}: {_one_line(e)}); please "
+          f"report it with the command that caused it", file=sys.stderr)
+    return 2
 
 
 def _one_line(e: BaseException) -> str:

@@ -329,7 +329,13 @@ def check_output(path, *, command: str, source: Source = None, folder: bool = Fa
         if (mark.get("command") in (command, *shares) and mark.get("input") == want) \
                 or overwrite:
             return True
-        held = f"pgs {mark.get('command')}'s output for {_shown(mark.get('input'))}"
+        had = mark.get("input")
+        if mark.get("command") == command and isinstance(had, dict) and isinstance(want, dict):
+            diff = ", ".join(f"{k}: {had.get(k)} -> {want.get(k)}" for k in want
+                             if had.get(k) != want.get(k))
+            raise OutputError(f"{p}: holds pgs {command}'s output for other arguments ({diff}); "
+                              f"choose another folder, or {flag} to replace it")
+        held = f"pgs {mark.get('command')}'s output for {_shown(had)}"
         raise OutputError(f"{p}: holds {held}; choose another folder, or {flag} to write "
                           f"pgs {command}'s output into it")
     if own is not None and own(p):

@@ -216,6 +216,11 @@ class Renderable:
                 self.scene = scene
         if not hasattr(self, "scene"):
             self.scene = load_scene_for(self.cfg, scene_path)
+        if self.phase == "decoded":     # a file's anchors against the scene it is drawn in
+            from baseline.data.scene import scene_bounds
+            from baseline.scaffold.model import check_bounds
+
+            check_bounds(self.model, str(target), *scene_bounds(self.scene))
         self.scene_path = scene_path
 
     def evaluate(self, split: str = "test", render_dir: Optional[Path] = None, lpips_fn=None) -> dict:

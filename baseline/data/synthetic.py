@@ -332,6 +332,8 @@ RANGES = {"n_views": (1, 2000), "width": (1, 4096), "height": (1, 4096),
           "seed": (0, 2 ** 63 - 1), "texture_detail": (0.0, 16.0), "n_points": (1, 10_000_000),
           "fov_deg": (1.0, 170.0)}
 MAX_PIXELS = 400_000_000           # views x width x height (the default scene: 768,000)
+_FLAGS = {"n_views": "--views", "width": "--width", "height": "--height", "seed": "--seed",
+          "texture_detail": "--detail"}
 
 
 def check_scene_args(**kw) -> dict:
@@ -340,15 +342,17 @@ def check_scene_args(**kw) -> dict:
     ``ValueError`` naming the argument."""
     for key, (lo, hi) in RANGES.items():
         v = kw[key]
+        name = f"make-scene {_FLAGS[key]} ({key})" if key in _FLAGS else f"make-scene {key}"
         integral = isinstance(lo, int)
-        if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)) or (
-                integral and not float(v).is_integer()):
-            raise ValueError(f"make-scene {key}: expected {'an integer' if integral else 'a number'}"
-                             f", got {v!r}")
+        if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)):
+            raise ValueError(f"{name}: expected {'an integer' if integral else 'a number'}, got "
+                             f"{v!r}")
         if not math.isfinite(float(v)):
-            raise ValueError(f"make-scene {key} must be finite, got {v}")
+            raise ValueError(f"{name} must be finite, got {v}")
+        if integral and not float(v).is_integer():
+            raise ValueError(f"{name}: expected an integer, got {v!r}")
         if not lo <= v <= hi:
-            raise ValueError(f"make-scene {key} = {v} is out of range [{lo}, {hi}]")
+            raise ValueError(f"{name} = {v} is out of range [{lo}, {hi}]")
         kw[key] = int(v) if integral else float(v)
     px = kw["n_views"] * kw["width"] * kw["height"]
     if px > MAX_PIXELS:
@@ -371,7 +375,7 @@ def _sigterm_as_interrupt():
         return
 
     def handler(signum, frame):
-        raise KeyboardInterrupt(f"signal {signum}")
+        raise KeyboardInterrupt
 
     old = signal.signal(signal.SIGTERM, handler)
     try:

@@ -428,8 +428,10 @@ def _stage_encode(spec: RunSpec, scene_path: str, record: dict,
                    f"(phase '{trainer.phase}'); its file is coded with an untrained context model")
     settings = run_codec(spec, codec)
     cfg = dataclasses.replace(trainer.cfg, codec=CodecConfig(**settings))
+    from baseline.data.scene import scene_bounds
+
     st = encode_model(cfg, trainer.model, trainer.entropy, spec.dir / MODEL_FILE,
-                      extra_header=file_header(scene, scene_path))
+                      extra_header=file_header(scene, scene_path), scene_bounds=scene_bounds(scene))
     info = file_info(spec.dir / MODEL_FILE)
     record["encode"] = {"bytes": st["bytes"], "encode_s": st["encode_s"], "anchors": st["anchors"],
                         "phase": trainer.phase, "sections": info["sections"],
