@@ -62,10 +62,9 @@ def cmd_make_scene(args) -> int:
 
 
 def cmd_train(args) -> int:
-    from baseline.run import train_run
-
     from baseline.data.readers import detect_format
     from baseline.guard import RUN_FILES, RunLock, check_output
+    from baseline.run import train_run
 
     cfg = _build_cfg(args)
     detect_format(Path(args.scene))        # a wrong scene path leaves no output folder behind
@@ -105,9 +104,8 @@ def _print_results(res: dict) -> None:
 
 def cmd_eval(args) -> int:
     from baseline.eval.metrics import load_lpips
-    from baseline.run import Renderable, write_json_atomic
-
     from baseline.guard import check_output, write_marker
+    from baseline.run import Renderable, write_json_atomic
 
     target = Path(args.target)
     out_dir = target if target.is_dir() else target.with_suffix("")
@@ -142,7 +140,7 @@ def _read_record(path: Path) -> dict:
 
     rec = read_json_bounded(path, "a pgs record")
     if not isinstance(rec, dict):
-        raise ValueError(f"{path}: not a JSON object, not a pgs record")
+        raise ValueError(f"{path}: not a JSON object, not a pgs record")  # noqa: TRY004
     return rec
 
 
@@ -158,9 +156,8 @@ def _is_eval_record(path: Path) -> bool:
 
 def cmd_quant_cost(args) -> int:
     from baseline.eval.quantcost import format_rows, quantization_cost
-    from baseline.run import load_run, write_json_atomic
-
     from baseline.guard import check_output
+    from baseline.run import load_run, write_json_atomic
 
     check_output(Path(args.run) / "quant_cost.json", command="quant-cost", source=args.run)
     trainer, scene = load_run(args.run, device=args.device)
@@ -174,9 +171,8 @@ def cmd_quant_cost(args) -> int:
 
 def cmd_census(args) -> int:
     from baseline.eval.census import census_of, format_census
-    from baseline.run import write_json_atomic
-
     from baseline.guard import check_output
+    from baseline.run import write_json_atomic
 
     labels = [Path(t).name for t in args.targets]
 
@@ -209,9 +205,8 @@ def cmd_curves(args) -> int:
 
 
 def cmd_render(args) -> int:
-    from baseline.run import Renderable
-
     from baseline.guard import check_output, write_marker
+    from baseline.run import Renderable
 
     out = Path(args.output)
     check_output(out, command="render", source=args.target, folder=True,
@@ -227,10 +222,15 @@ def cmd_render(args) -> int:
 
 
 def cmd_encode(args) -> int:
-    from baseline.codec.model_codec import encode_model, file_info, format_info, format_rate_check, rate_check
-    from baseline.run import file_header, load_run, write_json_atomic
-
+    from baseline.codec.model_codec import (
+        encode_model,
+        file_info,
+        format_info,
+        format_rate_check,
+        rate_check,
+    )
     from baseline.guard import check_output
+    from baseline.run import file_header, load_run, write_json_atomic
 
     record = Path(args.run) / "results.json"
 
@@ -276,17 +276,16 @@ def cmd_encode(args) -> int:
 
 
 def cmd_decode(args) -> int:
-    from baseline.codec.model_codec import decode_model
-    from baseline.contracts import feature_cache
-    from baseline.eval.export import export_run_ply, export_sh_ply
-    from baseline.eval.metrics import format_psnr
-    from baseline.run import Renderable, write_json_atomic
-
     import shutil
 
     import torch
 
+    from baseline.codec.model_codec import decode_model
+    from baseline.contracts import feature_cache
+    from baseline.eval.export import export_run_ply, export_sh_ply
+    from baseline.eval.metrics import format_psnr
     from baseline.guard import check_output, write_marker
+    from baseline.run import Renderable, write_json_atomic
 
     out = Path(args.output or Path(args.file).with_suffix(""))
 
@@ -392,9 +391,8 @@ def _print_ply(r: dict) -> None:
 
 def cmd_export_ply(args) -> int:
     from baseline.eval.export import export_run_ply, export_sh_ply
-    from baseline.run import coded_state, load_run
-
     from baseline.guard import check_output
+    from baseline.run import coded_state, load_run
 
     out = args.output or str(Path(args.run) / "point_cloud.ply")
 
@@ -557,11 +555,15 @@ def cmd_demo(args) -> int:
     by side. The runs train in parallel, one per core (the local executor); the report ends in
     a verdict (BD-rate, equal-lambda changes, paired FPS and training-time ratios)."""
     from baseline.data.synthetic import make_scene
-    from baseline.eval.compare import parse_methods, parse_reference, plan_runs, run_compare
+    from baseline.eval.compare import (
+        parse_methods,
+        parse_reference,
+        plan_runs,
+        run_compare,
+    )
     from baseline.eval.executors import Job, LocalExecutor
-    from baseline.train.trainer import available_cores
-
     from baseline.guard import check_output, write_marker
+    from baseline.train.trainer import available_cores
 
     out = Path(args.out)
     scene = out / "scene"
@@ -906,7 +908,7 @@ def main(argv=None) -> int:
     p.set_defaults(fn=cmd_demo)
 
     args = ap.parse_args(argv)
-    from baseline import memory, registry  # noqa: F401 - memory: imported before any failure
+    from baseline import memory, registry
 
     try:
         registry.ensure_loaded()

@@ -33,7 +33,7 @@ import secrets
 import stat as _stat
 from contextlib import contextmanager
 from pathlib import Path
-from typing import BinaryIO, Iterator, Optional, Union
+from typing import BinaryIO, Iterator, Union
 
 PathLike = Union[str, "os.PathLike[str]"]
 
@@ -139,7 +139,7 @@ def _pseudo_devices() -> set:
     return devs
 
 
-def _type_error(where: str, st: os.stat_result, what: str) -> Optional[str]:
+def _type_error(where: str, st: os.stat_result, what: str) -> str | None:
     if _stat.S_ISDIR(st.st_mode):
         return f"{where}: is a directory, not {what}"
     if not _stat.S_ISREG(st.st_mode):
@@ -168,7 +168,7 @@ def check_readable(path: PathLike, what: str = "a file") -> os.stat_result:
     return st
 
 
-def _cap_for(cap: Optional[int]) -> tuple[int, str]:
+def _cap_for(cap: int | None) -> tuple[int, str]:
     env_cap = max_file_bytes()
     if cap is None or cap >= env_cap:
         return env_cap, "PGS_MAX_FILE_MB raises it"
@@ -176,7 +176,7 @@ def _cap_for(cap: Optional[int]) -> tuple[int, str]:
 
 
 def open_checked(path: PathLike, what: str = "a file",
-                 cap: Optional[int] = None) -> tuple[BinaryIO, int, int]:
+                 cap: int | None = None) -> tuple[BinaryIO, int, int]:
     """Open a regular file for reading after :func:`check_readable`: ``(file, size, cap)``.
 
     ``size``: the size the OS reports (0: not reported, the file may still hold bytes);
@@ -202,7 +202,7 @@ def open_checked(path: PathLike, what: str = "a file",
     return os.fdopen(fd, "rb"), int(st.st_size), limit
 
 
-def read_bytes_bounded(path: PathLike, what: str = "a file", cap: Optional[int] = None) -> bytes:
+def read_bytes_bounded(path: PathLike, what: str = "a file", cap: int | None = None) -> bytes:
     """The bytes of a regular file, read in bounded chunks, never more than the cap (see
     :func:`open_checked`); a file longer than the cap is refused once the cap is passed."""
     where = str(path)
@@ -228,7 +228,7 @@ def read_bytes_bounded(path: PathLike, what: str = "a file", cap: Optional[int] 
 
 
 def read_text_bounded(path: PathLike, what: str = "a text file",
-                      cap: Optional[int] = RECORD_CAP) -> str:
+                      cap: int | None = RECORD_CAP) -> str:
     """A UTF-8 text file read as :func:`read_bytes_bounded` reads (capped at ``cap``)."""
     try:
         return read_bytes_bounded(path, what, cap).decode("utf-8")
@@ -238,7 +238,7 @@ def read_text_bounded(path: PathLike, what: str = "a text file",
 
 
 def read_json_bounded(path: PathLike, what: str = "a JSON record",
-                      cap: Optional[int] = RECORD_CAP):
+                      cap: int | None = RECORD_CAP):
     """A JSON file's value, read as :func:`read_text_bounded` reads; invalid JSON is an
     :class:`UnreadableFile` naming the line."""
     import json

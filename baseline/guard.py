@@ -21,8 +21,9 @@ import hashlib
 import json
 import os
 import sys
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable, Optional, Union
+from typing import Optional, Union
 
 # the files that make a folder a run (pgs train / pgs compare write them)
 RUN_FILES = ("checkpoint.pt", "config.toml", "results.json", "scene.json", "train_log.jsonl",
@@ -223,7 +224,7 @@ def _shown(source) -> str:
     return str(source)
 
 
-def read_marker(folder) -> Optional[dict]:
+def read_marker(folder) -> dict | None:
     """The marker of a toolkit output folder (``{"command", "input"}``), else None."""
     from baseline.fileio import read_json_bounded
 
@@ -251,7 +252,7 @@ def folder_entries(folder) -> list[str]:
 
 
 def check_output(path, *, command: str, source: Source = None, folder: bool = False,
-                 overwrite: bool = False, own: Optional[Callable[[Path], bool]] = None,
+                 overwrite: bool = False, own: Callable[[Path], bool] | None = None,
                  may_be_run: bool = False, shares: tuple = (),
                  flag: str = "--overwrite") -> bool:
     """May ``command`` (``"decode"``, ``"encode"``, ...) write its output at ``path``?
@@ -345,7 +346,7 @@ def check_output(path, *, command: str, source: Source = None, folder: bool = Fa
                       f"folder ({flag} writes only into the toolkit's own folders)")
 
 
-def _implied_marker(folder: Path) -> Optional[dict]:
+def _implied_marker(folder: Path) -> dict | None:
     """The toolkit's own records read as a marker where a folder has none: a run (its
     ``scene.json``, written before the first checkpoint) is ``pgs train``'s output for its
     scene; a synthetic scene (its ``synthetic.json``) is ``pgs make-scene``'s for its

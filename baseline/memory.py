@@ -13,8 +13,8 @@ reserved for bugs.
 from __future__ import annotations
 
 import re
+from collections.abc import Iterator
 from contextlib import contextmanager
-from typing import Iterator, Optional
 
 _ALLOC_MARKERS = ("can't allocate memory", "out of memory", "not enough memory",
                   "cannot allocate memory", "failed to allocate", "bad_alloc")
@@ -35,7 +35,7 @@ def is_allocation_failure(e: BaseException) -> bool:
     return isinstance(e, RuntimeError) and any(m in str(e).lower() for m in _ALLOC_MARKERS)
 
 
-def failed_size(e: BaseException) -> Optional[int]:
+def failed_size(e: BaseException) -> int | None:
     """Bytes of the failed allocation, when the message reports them."""
     m = _SIZE.search(str(e))
     if not m:
@@ -82,8 +82,8 @@ def process_limit(device: str = "cpu") -> str:
     return " and ".join(parts) or "this machine's memory"
 
 
-def describe(what: str, e: BaseException, planned: Optional[int] = None,
-             budget: Optional[int] = None, budget_name: str = "",
+def describe(what: str, e: BaseException, planned: int | None = None,
+             budget: int | None = None, budget_name: str = "",
              device: str = "cpu") -> str:
     size = failed_size(e)
     head = f"out of memory {what}: " + (f"an allocation of {mib(size)} failed"
@@ -97,7 +97,7 @@ def describe(what: str, e: BaseException, planned: Optional[int] = None,
 
 
 @contextmanager
-def allocating(what: str, *, planned: Optional[int] = None, budget: Optional[int] = None,
+def allocating(what: str, *, planned: int | None = None, budget: int | None = None,
                budget_name: str = "", device: str = "cpu") -> Iterator[None]:
     """Raise an allocation failure inside the block as one :class:`AllocationError` naming
     ``what`` ("decoding F.pgs (N anchors)"), the failed size, ``planned`` bytes against

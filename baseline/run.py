@@ -153,7 +153,8 @@ def _scene_path(run_dir: Path) -> str:
 
     rec = read_json_bounded(run_dir / "scene.json", "a run's scene record")
     if not isinstance(rec, dict) or not isinstance(rec.get("path"), str):
-        raise ValueError(f"{run_dir / 'scene.json'}: holds no scene path; train the run again")
+        raise ValueError(  # noqa: TRY004 - a damaged record: bad input, exit 2
+            f"{run_dir / 'scene.json'}: holds no scene path; train the run again")
     return rec["path"]
 
 

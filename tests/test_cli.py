@@ -370,7 +370,7 @@ def test_existing_files_are_replaced_only_when_asked(trained, tmp_path, capsys):
     """The one output rule: a path that exists is refused (exit 2, one line naming it and the
     flag, every byte as it was) unless it is the command's own earlier output for the same
     input or --overwrite is given; a folder of the user's files is never written into."""
-    d, scene, run = trained
+    _, scene, run = trained
     user = tmp_path / "user"
     user.mkdir()
     (user / "results.json").write_text('{"mine": 1}')

@@ -49,8 +49,8 @@ class Case:
     name: str
     data: bytes
     must_fail: bool = True
-    size: Optional[int] = None
-    path: Optional[str] = None
+    size: int | None = None
+    path: str | None = None
     fifo: bool = False
 
 

@@ -130,7 +130,7 @@ def _load_module_sections(prefix: str, module: nn.Module, sections: dict, used_x
 
 @torch.no_grad()
 def encode_model(cfg, model, entropy, path: str | Path, extra_header: Optional[dict] = None,
-                 scene_bounds: Optional[tuple] = None) -> dict:
+                 scene_bounds: tuple | None = None) -> dict:
     """Write ``model`` (+ its entropy model) to ``path``; returns stats incl. per-section bytes.
 
     Rounds the live networks to the stored precision (in place). Refused first (nothing

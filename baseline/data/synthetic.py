@@ -345,8 +345,8 @@ def check_scene_args(**kw) -> dict:
         name = f"make-scene {_FLAGS[key]} ({key})" if key in _FLAGS else f"make-scene {key}"
         integral = isinstance(lo, int)
         if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)):
-            raise ValueError(f"{name}: expected {'an integer' if integral else 'a number'}, got "
-                             f"{v!r}")
+            raise ValueError(  # noqa: TRY004 - a bad argument: one line, exit 2
+                f"{name}: expected {'an integer' if integral else 'a number'}, got {v!r}")
         if not math.isfinite(float(v)):
             raise ValueError(f"{name} must be finite, got {v}")
         if integral and not float(v).is_integer():

@@ -88,9 +88,8 @@ def run_benchmark(root, out, vs: list[str] = (), lambdas=None, seeds=None, scene
                   lpips_weights: Optional[str] = None, plots: bool = True,
                   progress: bool = True, echo: bool = True, overwrite: bool = False) -> dict:
     from baseline.eval.compare import run_compare
-    from baseline.run import write_json_atomic
-
     from baseline.guard import check_output, write_marker
+    from baseline.run import write_json_atomic
 
     out = Path(out).resolve()
     # new, empty, this root's benchmark (to resume) or, with ``overwrite``, another of the

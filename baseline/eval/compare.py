@@ -230,9 +230,8 @@ def float32_bytes(model_state: dict) -> int:
 def _stage_reference(spec: RunSpec, record: dict) -> None:
     import torch
 
-    from baseline.run import CHECKPOINT_NAME
-
     from baseline.fileio import open_checked
+    from baseline.run import CHECKPOINT_NAME
 
     ckpt = spec.dir / CHECKPOINT_NAME
     try:

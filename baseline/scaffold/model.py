@@ -401,8 +401,8 @@ def _replace_param(pdict: nn.ParameterDict, name: str, new_value: torch.Tensor, 
 SCENE_EXTENT_MULTIPLE = 1e4
 
 
-def check_bounds(model: "AnchorModel", where: str, center: Optional[torch.Tensor] = None,
-                 extent: Optional[float] = None) -> None:
+def check_bounds(model: AnchorModel, where: str, center: torch.Tensor | None = None,
+                 extent: float | None = None) -> None:
     """Refuse (``ValueError``, one line with the count and the worst value) a model whose
     anchor positions, activated scales (``exp`` of the log-scales, or a decoded model's values)
     or offsets (times their scale) are non-finite, or, given the scene's ``center`` [3] and

@@ -27,7 +27,12 @@ from tqdm import tqdm
 from baseline import registry
 from baseline.config import Config, to_toml
 from baseline.device import machine_name, make_generator, resolve_device
-from baseline.fileio import atomic_path, open_checked, read_text_bounded, write_text_atomic
+from baseline.fileio import (
+    atomic_path,
+    open_checked,
+    read_text_bounded,
+    write_text_atomic,
+)
 from baseline.memory import allocating
 from baseline.pipeline import render_view
 from baseline.scaffold.build import build_entropy, build_model, entropy_param_groups
