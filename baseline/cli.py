@@ -56,21 +56,23 @@ def cmd_make_scene(args) -> int:
     from baseline.data.synthetic import make_scene
 
     make_scene(args.out, n_views=args.views, width=args.width, height=args.height, seed=args.seed,
-               texture_detail=args.detail)
+               texture_detail=args.detail, overwrite=args.overwrite)
     print(f"wrote synthetic scene to {args.out}")
     return 0
 
 
 def cmd_train(args) -> int:
-    from baseline.run import train_run
-
     from baseline.data.readers import detect_format
-    from baseline.guard import RUN_FILES, RunLock, check_output_folder
+    from baseline.guard import RUN_FILES, RunLock, check_output
+    from baseline.run import train_run
 
     cfg = _build_cfg(args)
     detect_format(Path(args.scene))        # a wrong scene path leaves no output folder behind
     out = Path(args.out)
-    check_output_folder(out, may_be_run=args.resume, overwrite=args.overwrite)
+    # a new or empty folder, a run of this scene (started, or with --resume finished), or with
+    # --overwrite any run or toolkit output; never a folder of the user's files
+    check_output(out, command="train", source=args.scene, folder=True, overwrite=args.overwrite,
+                 may_be_run=args.resume or args.overwrite)
     if args.resume and not (out / "checkpoint.pt").is_file():
         raise ValueError(f"--resume: {out} holds no run to resume (no checkpoint.pt); leave "
                          f"--resume out to start one")
@@ -86,6 +88,7 @@ def cmd_train(args) -> int:
 
 def _print_results(res: dict) -> None:
     t = res.get("test", {})
+    from baseline.eval.metrics import format_psnr
     from baseline.eval.report import stalled
 
     stall = (f", {res['stall_s']:.1f} s of it stalled: paused or sharing its core"
@@ -95,37 +98,68 @@ def _print_results(res: dict) -> None:
           f"{stall})  anchors {res['anchors']}")
     if t:
         lp = "unavailable" if t.get("lpips") is None else f"{t['lpips']:.4f}"
-        print(f"test: PSNR {t['psnr']:.3f} dB  SSIM {t['ssim']:.4f}  LPIPS {lp}  "
+        print(f"test: PSNR {format_psnr(t['psnr'], 3)}  SSIM {t['ssim']:.4f}  LPIPS {lp}  "
               f"FPS {t['fps']:.1f}  Gaussians/view {t['gaussians_mean']:.0f}")
 
 
 def cmd_eval(args) -> int:
     from baseline.eval.metrics import load_lpips
+    from baseline.guard import check_output, write_marker
     from baseline.run import Renderable, write_json_atomic
 
+    target = Path(args.target)
+    out_dir = target if target.is_dir() else target.with_suffix("")
+    path = (target / "results.json") if target.is_dir() else target.with_suffix(".results.json")
+    render_dir = out_dir / "renders" / args.split
+    if not target.is_dir():          # beside a .pgs file: in decode's folder, its own record
+        check_output(out_dir, command="eval", source=target, folder=True, shares=("decode",))
+        check_output(path, command="eval", source=target, own=_is_eval_record)
+    check_output(render_dir, command="eval", source=target, folder=True)
     r = Renderable(args.target, args.scene, device=args.device)
     lpips_fn, reason = load_lpips(_lpips_weights(args))
     if lpips_fn is None:
         print(reason, file=sys.stderr)          # stdout stays one JSON document
-    target = Path(args.target)
-    out_dir = target if target.is_dir() else target.with_suffix("")
-    res = r.evaluate(args.split, render_dir=out_dir / "renders" / args.split, lpips_fn=lpips_fn)
+    if not target.is_dir() and not out_dir.exists():
+        write_marker(out_dir, "eval", target)
+    res = r.evaluate(args.split, render_dir=render_dir, lpips_fn=lpips_fn)
+    write_marker(render_dir, "eval", target)
     res["phase"] = r.phase
     if r.phase == "decoded":
         res["bytes"] = target.stat().st_size
         res["decode_s"] = r.decoded.decode_s
     print(json.dumps(res, indent=2))
-    path = (target / "results.json") if target.is_dir() else target.with_suffix(".results.json")
-    full = json.loads(path.read_text()) if path.exists() else {}
+    full = _read_record(path) if path.exists() else {}
     full[args.split] = res
     write_json_atomic(path, full)
     return 0
 
 
+def _read_record(path: Path) -> dict:
+    """A JSON record of the toolkit's (read bounded; not an object: an error naming it)."""
+    from baseline.fileio import read_json_bounded
+
+    rec = read_json_bounded(path, "a pgs record")
+    if not isinstance(rec, dict):
+        raise ValueError(f"{path}: not a JSON object, not a pgs record")  # noqa: TRY004
+    return rec
+
+
+def _is_eval_record(path: Path) -> bool:
+    """``FILE.results.json`` as ``pgs eval FILE.pgs`` writes it: one entry per split."""
+    try:
+        rec = _read_record(path)
+    except ValueError:
+        return False
+    return bool(rec) and set(rec) <= {"test", "train"} and all(
+        isinstance(v, dict) and v.get("phase") == "decoded" for v in rec.values())
+
+
 def cmd_quant_cost(args) -> int:
     from baseline.eval.quantcost import format_rows, quantization_cost
+    from baseline.guard import check_output
     from baseline.run import load_run, write_json_atomic
 
+    check_output(Path(args.run) / "quant_cost.json", command="quant-cost", source=args.run)
     trainer, scene = load_run(args.run, device=args.device)
     cams = scene.test_cameras if args.split == "test" else scene.train_cameras
     rows = quantization_cost(trainer, scene, cams or scene.train_cameras, seed=args.seed)
@@ -137,8 +171,21 @@ def cmd_quant_cost(args) -> int:
 
 def cmd_census(args) -> int:
     from baseline.eval.census import census_of, format_census
+    from baseline.guard import check_output
     from baseline.run import write_json_atomic
 
+    labels = [Path(t).name for t in args.targets]
+
+    def own(path):                 # the census of these targets, written before
+        try:
+            rec = _read_record(path)
+        except ValueError:
+            return False
+        return set(rec) == {"census"} and [r.get("label") for r in rec["census"]] == labels
+
+    if args.json:
+        check_output(args.json, command="census", source={"targets": labels},
+                     overwrite=args.overwrite, own=own)
     res = []
     for t in args.targets:
         r = census_of(t, thresholds=args.thresholds, device=args.device)
@@ -158,31 +205,50 @@ def cmd_curves(args) -> int:
 
 
 def cmd_render(args) -> int:
+    from baseline.guard import check_output, write_marker
     from baseline.run import Renderable
 
-    from baseline.guard import check_output_folder
-
     out = Path(args.output)
-    check_output_folder(out)
+    check_output(out, command="render", source=args.target, folder=True,
+                 overwrite=args.overwrite)
     r = Renderable(args.target, args.scene, device=args.device)
+    write_marker(out, "render", args.target)
     res = r.evaluate(args.split, render_dir=out)
+    from baseline.eval.metrics import format_psnr
+
     print(f"rendered {res['n_views']} {args.split} views to {out} "
-          f"(PSNR {res['psnr']:.3f} dB, FPS {res['fps']:.1f})")
+          f"(PSNR {format_psnr(res['psnr'], 3)}, FPS {res['fps']:.1f})")
     return 0
 
 
 def cmd_encode(args) -> int:
-    from baseline.codec.model_codec import encode_model, file_info, format_info, format_rate_check, rate_check
+    from baseline.codec.model_codec import (
+        encode_model,
+        file_info,
+        format_info,
+        format_rate_check,
+        rate_check,
+    )
+    from baseline.guard import check_output
     from baseline.run import file_header, load_run, write_json_atomic
 
-    from baseline.guard import check_output_file
+    record = Path(args.run) / "results.json"
 
-    check_output_file(args.output, overwrite=args.overwrite)
+    def own(path):               # the file this run's record says it encoded there
+        try:
+            enc = _read_record(record).get("encode") or {}
+        except ValueError:
+            return False
+        return (isinstance(enc.get("file"), str) and Path(enc["file"]).resolve() == path.resolve()
+                and path.read_bytes()[:4] == b"PGS\x00")
+
+    check_output(args.output, command="encode", source=args.run, overwrite=args.overwrite,
+                 own=own)
     trainer, scene = load_run(args.run, device="cpu")       # the codec runs on the CPU
     if trainer.phase != "adaptive":
         print(f"note: {args.run} stopped before the entropy model was trained (phase "
               f"'{trainer.phase}'); the file is coded with an untrained context model")
-    scene_path = json.loads((Path(args.run) / "scene.json").read_text())["path"]
+    scene_path = _read_record(Path(args.run) / "scene.json")["path"]
     cfg = trainer.cfg
     codec_over = {k: v for k, v in (("weight_dtype", args.weights), ("positions", args.positions),
                                     ("masks", args.masks), ("grids", args.grids))
@@ -191,15 +257,17 @@ def cmd_encode(args) -> int:
         import dataclasses
 
         cfg = dataclasses.replace(cfg, codec=dataclasses.replace(cfg.codec, **codec_over))
+    from baseline.data.scene import scene_bounds
+
     st = encode_model(cfg, trainer.model, trainer.entropy, args.output,
-                      extra_header=file_header(scene, scene_path))
+                      extra_header=file_header(scene, scene_path), scene_bounds=scene_bounds(scene))
     print(format_info(file_info(args.output)))
     print(f"wrote {args.output}: {st['bytes']} bytes ({st['bytes'] / 2**20:.4f} MB), "
           f"{st['anchors']} anchors, encode {st['encode_s']:.2f} s")
     if args.rate_check:
         print(format_rate_check(rate_check(trainer.model, trainer.entropy, st)))
     path = Path(args.run) / "results.json"
-    full = json.loads(path.read_text()) if path.exists() else {}
+    full = _read_record(path) if path.exists() else {}
     if cfg is trainer.cfg:  # the run's own configuration: record it with the run
         full["encode"] = {"file": str(args.output), "bytes": st["bytes"], "encode_s": st["encode_s"],
                           "anchors": st["anchors"], "sections": st["sections"]}
@@ -208,19 +276,30 @@ def cmd_encode(args) -> int:
 
 
 def cmd_decode(args) -> int:
-    from baseline.codec.model_codec import decode_model
-    from baseline.contracts import feature_cache
-    from baseline.eval.export import export_run_ply, export_sh_ply
-    from baseline.run import Renderable, write_json_atomic
-
     import shutil
 
     import torch
 
-    from baseline.guard import check_output_folder
+    from baseline.codec.model_codec import decode_model
+    from baseline.contracts import feature_cache
+    from baseline.eval.export import export_run_ply, export_sh_ply
+    from baseline.eval.metrics import format_psnr
+    from baseline.guard import check_output, write_marker
+    from baseline.run import Renderable, write_json_atomic
 
     out = Path(args.output or Path(args.file).with_suffix(""))
-    check_output_folder(out)               # never a run's folder, never inside a scene
+
+    def own(folder):             # written before folders were marked: its record names the file
+        try:
+            rec = _read_record(folder / "results.json")
+        except ValueError:
+            return False
+        return "ply" in rec and isinstance(rec.get("file"), str) and \
+            Path(rec["file"]).resolve() == Path(args.file).resolve()
+
+    # never a run's folder, never inside a scene, never a folder of the user's files
+    check_output(out, command="decode", source=args.file, folder=True, overwrite=args.overwrite,
+                 own=own, shares=("eval",))
     dec = decode_model(args.file)          # nothing is written unless the file decodes
     print(f"decoded {args.file}: {dec.model.n_anchors} anchors in {dec.decode_s:.2f} s")
     res = {"file": str(args.file), "bytes": Path(args.file).stat().st_size, "decode_s": dec.decode_s,
@@ -228,6 +307,7 @@ def cmd_decode(args) -> int:
     created = not out.exists()
     try:
         out.mkdir(parents=True, exist_ok=True)
+        write_marker(out, "decode", args.file)
         center = dec.header.get("view_center")
         r = None
         if args.render != "none" or center is None:
@@ -235,7 +315,8 @@ def cmd_decode(args) -> int:
         if args.render != "none":
             res[args.render] = r.evaluate(args.render, render_dir=out / "renders" / args.render)
             t = res[args.render]
-            print(f"{args.render}: PSNR {t['psnr']:.3f} dB  SSIM {t['ssim']:.4f}  FPS {t['fps']:.1f}")
+            print(f"{args.render}: PSNR {format_psnr(t['psnr'], 3)}  SSIM {t['ssim']:.4f}  "
+                  f"FPS {t['fps']:.1f}")
             prov = feature_cache(r.model)
             if prov is not None:             # Predict-GS: FPS without the decoded-model f_c cache
                 prov.clear_cache()
@@ -249,6 +330,11 @@ def cmd_decode(args) -> int:
         model.to("cpu")
         ply = out / "point_cloud.ply"
         scene = r.scene if r is not None else _scene_of(dec, args.scene)
+        if scene is not None and r is None:        # (Renderable checked its own)
+            from baseline.data.scene import scene_bounds
+            from baseline.scaffold.model import check_bounds
+
+            check_bounds(model, str(args.file), *scene_bounds(scene))
         if scene is not None and scene.train_cameras:
             model.unbake()
             res["ply"] = export_sh_ply(model, scene, ply, sh_degree=args.sh_degree,
@@ -294,20 +380,31 @@ def _scene_of(dec, scene_override):
 
 
 def _print_ply(r: dict) -> None:
+    from baseline.eval.metrics import format_psnr
+
     print(f"wrote {r['gaussians']} Gaussians to {r['path']} (the union over the training views "
           f"of those drawn, {r['drawn_per_view']:.0f} per view; SH degree {r['sh_degree']}); "
-          f"fidelity on {r['views']} test views: {r['psnr_vs_model']:.2f} dB against the model's "
-          f"render, {r['psnr_ply']:.2f} dB against the ground truth (model {r['psnr_model']:.2f})")
+          f"fidelity on {r['views']} test views: {format_psnr(r['psnr_vs_model'])} against the "
+          f"model's render, {format_psnr(r['psnr_ply'])} against the ground truth (model "
+          f"{format_psnr(r['psnr_model'])})")
 
 
 def cmd_export_ply(args) -> int:
     from baseline.eval.export import export_run_ply, export_sh_ply
+    from baseline.guard import check_output
     from baseline.run import coded_state, load_run
 
-    from baseline.guard import check_output_file
-
     out = args.output or str(Path(args.run) / "point_cloud.ply")
-    check_output_file(out)
+
+    def own(path):                # a PLY this command exported from the same run
+        from baseline.fileio import open_checked
+
+        f, _, _ = open_checked(path, "a PLY file")
+        with f:
+            head = f.read(4096)
+        return head.startswith(b"ply\n") and f"comment pgs export of {args.run}:".encode() in head
+
+    check_output(out, command="export-ply", source=args.run, overwrite=args.overwrite, own=own)
     trainer, scene = load_run(args.run, device="cpu")
     # in the adaptive phase: what the codec would store (quantized values, 16-bit positions)
     coded = coded_state(trainer)
@@ -369,6 +466,12 @@ def cmd_compare(args) -> int:
     from baseline.eval.compare import run_compare
 
     sets = _config_sets(args)
+    if args.archive:                   # checked now, not after hours of training
+        from baseline.eval.compare import is_compare_folder
+        from baseline.guard import check_output
+
+        check_output(args.archive, command="compare", source=args.scene, folder=True,
+                     own=is_compare_folder, overwrite=args.overwrite)
     try:
         results = run_compare(args.scene, args.out, vs=args.vs, lambdas=args.lambdas,
                               common_patches=args.patch, sets=sets,
@@ -377,7 +480,8 @@ def cmd_compare(args) -> int:
                               report_only=args.report_only, reference=args.reference,
                               codec=args.codec, seeds=args.seeds,
                               panel_views=args.panel_views, paired_fps=args.paired_fps,
-                              lambda_for=args.lambda_for, untimed=args.untimed)
+                              lambda_for=args.lambda_for, untimed=args.untimed,
+                              overwrite=args.overwrite)
     except KeyboardInterrupt:
         print(f"\ninterrupted: finished stages are kept in {args.out}; run the same command "
               f"again to resume", file=sys.stderr)
@@ -385,7 +489,7 @@ def cmd_compare(args) -> int:
     if args.archive:
         from baseline.eval.compare import archive_records
 
-        kept = archive_records(args.out, args.archive, results)
+        kept = archive_records(args.out, args.archive, results, overwrite=args.overwrite)
         print(f"archived the records of {len(kept)} finished run(s) and the report to {args.archive}")
     return 0
 
@@ -406,7 +510,7 @@ def cmd_benchmark(args) -> int:
                         scenes=scenes, protocol=args.protocol, common_patches=args.patch,
                         sets=sets, executor=args.executor, executor_options=opts,
                         lpips_weights=_lpips_weights(args), plots=not args.no_plots,
-                        progress=not args.no_progress)
+                        progress=not args.no_progress, overwrite=args.overwrite)
     return 0 if not res["failed"] else 1
 
 
@@ -452,12 +556,22 @@ def cmd_demo(args) -> int:
     by side. The runs train in parallel, one per core (the local executor); the report ends in
     a verdict (BD-rate, equal-lambda changes, paired FPS and training-time ratios)."""
     from baseline.data.synthetic import make_scene
-    from baseline.eval.compare import parse_methods, parse_reference, plan_runs, run_compare
+    from baseline.eval.compare import (
+        parse_methods,
+        parse_reference,
+        plan_runs,
+        run_compare,
+    )
     from baseline.eval.executors import Job, LocalExecutor
+    from baseline.guard import check_output, write_marker
     from baseline.train.trainer import available_cores
 
     out = Path(args.out)
     scene = out / "scene"
+    # the demo is a comparison on its own scene: new, empty, or an earlier demo (to resume)
+    check_output(out, command="compare", source=scene, folder=True, overwrite=args.overwrite,
+                 own=lambda p: (p / "scene" / "synthetic.json").is_file())
+    write_marker(out, "compare", scene)
     if not (scene / "sparse").exists():
         make_scene(scene)
         print(f"wrote the default synthetic scene to {scene}")
@@ -548,7 +662,10 @@ def main(argv=None) -> int:
     p.add_argument("--width", type=_positive_int, default=160, help="image width in pixels")
     p.add_argument("--height", type=_positive_int, default=120, help="image height in pixels")
     p.add_argument("--seed", type=int, default=0, help="scene seed (the same seed writes the same bytes)")
-    p.add_argument("--detail", type=float, default=1.0, help="texture detail; 0 = flat colours")
+    p.add_argument("--detail", type=float, default=1.0,
+                   help="texture detail, 0 to 16; 0 = flat colours")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace a scene that pgs make-scene wrote with other arguments")
     p.set_defaults(fn=cmd_make_scene)
 
     p = sub.add_parser("train", help="train a model on a scene")
@@ -580,6 +697,8 @@ def main(argv=None) -> int:
     p.add_argument("--thresholds", type=float, nargs="+", default=None,
                    help="opacity thresholds of the sweep (default 0 0.005 0.01 0.02 0.05 0.1 0.2 0.3)")
     p.add_argument("--json", default=None, help="also write the figures to this JSON file")
+    p.add_argument("--overwrite", action="store_true",
+                   help="let --json replace an existing file")
     p.add_argument("--device", default=None, help=DEVICE_HELP)
     p.set_defaults(fn=cmd_census)
 
@@ -601,6 +720,8 @@ def main(argv=None) -> int:
     p = sub.add_parser("render", help="render the views of a run folder or a .pgs file to PNG")
     p.add_argument("target", help="run folder or .pgs file")
     p.add_argument("-o", "--output", required=True, help="folder for the PNG renders")
+    p.add_argument("--overwrite", action="store_true",
+                   help="write into a folder holding another output of pgs")
     p.add_argument("--split", choices=["test", "train"], default="test", help="the views to use (default test)")
     p.add_argument("--scene", default=None, help="scene path (default: the one recorded)")
     p.add_argument("--device", default=None, help=DEVICE_HELP)
@@ -610,7 +731,8 @@ def main(argv=None) -> int:
     p.add_argument("run", help="run folder (trained)")
     p.add_argument("-o", "--output", required=True, help="the .pgs file to write")
     p.add_argument("--overwrite", action="store_true",
-                   help="allow the output to replace a run's record file (never a scene's)")
+                   help="allow the output to replace an existing file or a run's record file "
+                        "(never a scene's)")
     p.add_argument("--weights", choices=["float32", "float16"], default=None,
                    help="network weight precision in the file (default: the run's codec.weight_dtype)")
     p.add_argument("--positions", choices=["raw16", "sorted", "lattice"], default=None,
@@ -631,6 +753,8 @@ def main(argv=None) -> int:
                        "OUT/results.json; with --render also renders + metrics")
     p.add_argument("file", help=".pgs file")
     p.add_argument("-o", "--output", default=None, help="output folder (default: beside the file)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="write into a folder holding another output of pgs (its point_cloud.ply and results.json are replaced)")
     p.add_argument("--render", choices=["test", "train", "none"], default="none", help="also render these views and measure them")
     p.add_argument("--scene", default=None, help="scene path (default: the one the file records)")
     p.add_argument("--sh-degree", type=int, choices=[0, 1, 2, 3], default=3,
@@ -645,6 +769,8 @@ def main(argv=None) -> int:
     p = sub.add_parser("export-ply", help="write the decoded neural Gaussians as a 3DGS PLY")
     p.add_argument("run", help="run folder (trained)")
     p.add_argument("-o", "--output", default=None, help="PLY file (default RUN/point_cloud.ply)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace an existing file")
     p.add_argument("--sh-degree", type=int, choices=[0, 1, 2, 3], default=3,
                    help="degree of the fitted spherical-harmonic colours (default 3)")
     p.set_defaults(fn=cmd_export_ply)
@@ -709,6 +835,8 @@ def main(argv=None) -> int:
                         "seed-mean curves (two seeds or more for any rate-distortion claim)")
     p.add_argument("--out", default="runs/compare", help="comparison folder (runs/, report.md, "
                    "results.json, plots); rerun to resume")
+    p.add_argument("--overwrite", action="store_true",
+                   help="write into a folder holding another output of pgs (a comparison of another scene)")
     p.add_argument("--lpips-weights", default=None, help=LPIPS_HELP)
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     p.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
@@ -749,6 +877,8 @@ def main(argv=None) -> int:
     p.add_argument("--lambda", dest="lambdas", type=float, nargs="+", default=None, metavar="L", help="rate points (entropy.lmbda)")
     p.add_argument("--seeds", type=int, nargs="+", default=None, metavar="S", help="train every rate point once per seed")
     p.add_argument("--out", required=True, help="benchmark folder (on Ray: a path every node sees)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="write into a folder holding another output of pgs")
     p.add_argument("--executor", default="local", choices=["local", "ray"], help="where runs execute (default local)")
     p.add_argument("--jobs", type=int, default=1,
                    help="local: runs at a time, each in its own process with its share of the cores")
@@ -771,6 +901,8 @@ def main(argv=None) -> int:
     p = sub.add_parser("demo", help="the main job: HAC vs Predict-GS on the embedded scene, three "
                        "rate points trained in parallel, a verdict at the end")
     p.add_argument("--out", default="runs/demo", help="demo folder (default runs/demo)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="write into a folder holding another output of pgs")
     p.add_argument("--patch", action="append", default=[], help="extra patches for every run")
     p.add_argument("--vs", action="append", default=[], help="contenders (default predict-gs)")
     p.add_argument("--lambda", dest="lambdas", type=float, nargs="+", default=None,
@@ -783,7 +915,7 @@ def main(argv=None) -> int:
     p.set_defaults(fn=cmd_demo)
 
     args = ap.parse_args(argv)
-    from baseline import registry
+    from baseline import memory, registry
 
     try:
         registry.ensure_loaded()
@@ -798,13 +930,22 @@ def main(argv=None) -> int:
     except (ValueError, FileNotFoundError, OSError) as e:
         print(f"pgs {args.cmd}: error: {_one_line(e)}", file=sys.stderr)
         return 2
-    except MemoryError:
-        print(f"pgs {args.cmd}: error: out of memory", file=sys.stderr)
+    except (MemoryError, RuntimeError) as e:
+        if not memory.is_allocation_failure(e):
+            return _internal_error(args, e)
+        # an allocation no step named (AllocationError names its own)
+        msg = str(e) if isinstance(e, memory.AllocationError) else memory.describe(
+            f"in pgs {args.cmd}", e)
+        print(f"pgs {args.cmd}: error: {_one_line(msg)}", file=sys.stderr)
         return 2
     except Exception as e:  # noqa: BLE001 - never a traceback to a user; say it is a bug
-        print(f"pgs {args.cmd}: internal error ({type(e).__name__}: {_one_line(e)}); please "
-              f"report it with the command that caused it", file=sys.stderr)
-        return 2
+        return _internal_error(args, e)
+
+
+def _internal_error(args, e: BaseException) -> int:
+    print(f"pgs {args.cmd}: internal error ({type(e).__name__}: {_one_line(e)}); please "
+          f"report it with the command that caused it", file=sys.stderr)
+    return 2
 
 
 def _one_line(e: BaseException) -> str:

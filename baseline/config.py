@@ -21,6 +21,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from baseline.fileio import read_text_bounded
+
 PATCH_DIR = Path(__file__).resolve().parent.parent / "patches"
 
 
@@ -303,8 +305,7 @@ def resolve_patch(name: str) -> Path:
 def load_patch(name: str) -> tuple[Path, dict]:
     path = resolve_patch(name)
     try:
-        with open(path, "rb") as f:
-            data = tomllib.load(f)
+        data = tomllib.loads(read_text_bounded(path, "a config patch"))
     except tomllib.TOMLDecodeError as e:
         raise ConfigError(f"patch {path} is not valid TOML: {e}") from None
     return path, data
@@ -491,8 +492,10 @@ def to_toml(cfg: Config) -> str:
 
 def from_toml(path: str | Path) -> Config:
     """Re-read a merged config written by :func:`to_toml` (a run folder's config.toml)."""
-    with open(path, "rb") as f:
-        data = tomllib.load(f)
+    try:
+        data = tomllib.loads(read_text_bounded(path, "a run's config"))
+    except tomllib.TOMLDecodeError as e:
+        raise ConfigError(f"{path} is not valid TOML: {e}") from None
     cfg = default_config()
     cfg.patches = list(data.pop("patches", []))
     apply_overlay(cfg, data, f"config {path}")

@@ -4,13 +4,16 @@ into a scene, and resumes that check what they resume.
 * :class:`RunLock`: a run folder is written by one process at a time (``fcntl.flock`` on
   ``RUN/.pgs.lock``; the kernel releases it when the process ends, however it ends, so a crash
   never leaves it held).
-* :func:`check_output_file` / :func:`check_output_folder`: an output path that would replace a
-  run's records (checkpoint, config, results, log, model file) or lies inside a scene folder is
-  refused with the path and what it holds; ``overwrite`` allows the run's records (never a
-  scene: the toolkit does not write into scenes).
 * :func:`scene_identity` / :func:`check_resume`: a run records what it was trained on (scene
   path, format, the views' names and sizes, the protocol); resuming it on another scene or with
   another training configuration is refused, with the difference named.
+* :func:`check_output`: the one rule every command that writes applies to its output paths
+  (the command line and the Python API alike). An output that does not exist, an empty folder,
+  or the command's own earlier output for the same input (a folder holding the toolkit's
+  marker file :data:`MARKER_NAME` naming that command and input, a run being resumed, a report
+  being rebuilt) is accepted; ``overwrite`` also accepts another output of the toolkit or an
+  existing file; a folder holding files the toolkit did not write is never written into. Every
+  refusal is one :class:`OutputError` line naming the path and the flag.
 """
 from __future__ import annotations
 
@@ -18,13 +21,17 @@ import hashlib
 import json
 import os
 import sys
+from collections.abc import Callable
 from pathlib import Path
-from typing import Optional
+from typing import Optional, Union
 
 # the files that make a folder a run (pgs train / pgs compare write them)
 RUN_FILES = ("checkpoint.pt", "config.toml", "results.json", "scene.json", "train_log.jsonl",
              "compare.json", "model.pgs")
 LOCK_NAME = ".pgs.lock"
+# written by the toolkit into every output folder it creates (decode, render, compare, ...):
+# {"command": ..., "input": ...}; a folder holding it is the toolkit's own
+MARKER_NAME = ".pgs-output"
 
 
 class OutputError(ValueError):
@@ -52,37 +59,6 @@ def scene_root(path: Path) -> Optional[Path]:
         except OSError:
             continue
     return None
-
-
-def check_output_file(path, *, overwrite: bool = False) -> None:
-    """Refuse an output file that would replace a run's record (unless ``overwrite``) or that
-    lies inside a scene folder."""
-    p = Path(path).expanduser().absolute()
-    if p.is_dir():
-        raise OutputError(f"{p}: is a folder; give a file name")
-    root = scene_root(p.parent)
-    if root is not None:
-        raise OutputError(f"{p}: inside the scene folder {root}; the toolkit never writes into "
-                          f"a scene: choose a path outside it")
-    if p.name in RUN_FILES and is_run_folder(p.parent) and not overwrite:
-        raise OutputError(f"{p}: is the {p.name} of the run {p.parent}; writing there would "
-                          f"replace it (choose another path, or --overwrite)")
-
-
-def check_output_folder(path, *, overwrite: bool = False, may_be_run: bool = False) -> None:
-    """Refuse an output folder that is a run (unless ``may_be_run`` or ``overwrite``) or lies
-    inside a scene folder."""
-    p = Path(path).expanduser().absolute()
-    root = scene_root(p)
-    if root is not None:
-        raise OutputError(f"{p}: inside the scene folder {root}; the toolkit never writes into "
-                          f"a scene: choose a folder outside it")
-    if p.exists() and not p.is_dir():
-        raise OutputError(f"{p}: exists and is not a folder")
-    if not may_be_run and not overwrite and is_run_folder(p):
-        raise OutputError(f"{p}: holds a run (config.toml with a checkpoint or results); "
-                          f"writing there would replace its records (choose another folder, "
-                          f"or --overwrite)")
 
 
 class RunLock:
@@ -208,10 +184,13 @@ def check_resume(run: Path, cfg, scene, scene_path) -> None:
     run = Path(run)
     sj = run / "scene.json"
     if sj.is_file():
+        from baseline.fileio import read_json_bounded
+
         try:
-            rec = json.loads(sj.read_text())
+            rec = read_json_bounded(sj, "a run's scene record", cap=1 << 20)
         except (OSError, ValueError):
             rec = {}
+        rec = rec if isinstance(rec, dict) else {}
         diff = identity_difference(rec, scene_identity(scene, scene_path))
         if diff:
             raise OutputError(f"{run}: cannot resume on this scene: {diff}; use another --out "
@@ -225,3 +204,177 @@ def check_resume(run: Path, cfg, scene, scene_path) -> None:
                               + ("; ".join(diff[:6]) + ("; ..." if len(diff) > 6 else "")
                                  if diff else "the training semantics changed")
                               + "): drop the changes, or train into another --out folder")
+
+
+# ---------------------------------------------------------------------------- the output rule
+Source = Union[str, "os.PathLike[str]", dict, None]
+
+
+def _source_key(source: Source):
+    """What a marker records as a command's input: a path as its absolute resolved form, a dict
+    of parameters (``make-scene``) as it is."""
+    if source is None or isinstance(source, dict):
+        return source
+    return str(Path(source).expanduser().resolve())
+
+
+def _shown(source) -> str:
+    if isinstance(source, dict):
+        return ", ".join(f"{k}={v}" for k, v in source.items())
+    return str(source)
+
+
+def read_marker(folder) -> dict | None:
+    """The marker of a toolkit output folder (``{"command", "input"}``), else None."""
+    from baseline.fileio import read_json_bounded
+
+    m = Path(folder) / MARKER_NAME
+    if not m.is_file():
+        return None
+    try:
+        rec = read_json_bounded(m, "an output marker", cap=1 << 20)
+    except ValueError:
+        return None
+    return rec if isinstance(rec, dict) and "command" in rec else None
+
+
+def write_marker(folder, command: str, source: Source = None) -> None:
+    """Mark ``folder`` (created if missing) as ``command``'s output for ``source`` (atomic)."""
+    from baseline.fileio import write_text_atomic
+
+    write_text_atomic(Path(folder) / MARKER_NAME,
+                      json.dumps({"command": command, "input": _source_key(source)}, indent=1))
+
+
+def folder_entries(folder) -> list[str]:
+    """The entries of ``folder`` other than the toolkit's lock and marker files."""
+    return sorted(x for x in os.listdir(folder) if x not in (LOCK_NAME, MARKER_NAME))
+
+
+def check_output(path, *, command: str, source: Source = None, folder: bool = False,
+                 overwrite: bool = False, own: Callable[[Path], bool] | None = None,
+                 may_be_run: bool = False, shares: tuple = (),
+                 flag: str = "--overwrite") -> bool:
+    """May ``command`` (``"decode"``, ``"encode"``, ...) write its output at ``path``?
+
+    Args:
+        path: the output file, or with ``folder`` the output folder.
+        command: the writing command's name, as its marker records it.
+        source: its input (a path, or a dict of parameters); an output of the same command for
+            another input is not its own.
+        overwrite: the user asked to replace: an existing file, or a folder holding another
+            output of the toolkit, is accepted (a folder holding files the toolkit did not
+            write is still refused: nothing would say which of them it may replace).
+        own: ``own(path) -> bool`` for outputs the command recognises as its own without a
+            marker (a ``.pgs`` file its run's record names, a folder written before markers).
+        may_be_run: the folder may be a run (``train --resume``).
+        shares: other commands whose output for the same input may share the folder (``pgs
+            eval`` of a ``.pgs`` file renders into the folder ``pgs decode`` writes).
+        flag: the option that sets ``overwrite``, named in refusals.
+
+    Accepted: a path that does not exist; an empty folder (lock and marker files aside); a
+    folder whose marker names ``command`` (or one of ``shares``) and ``source``; a path inside
+    the run folder ``source`` names (the run's own outputs: renders, exports, measurements,
+    but never its record files without ``overwrite``); anything ``own`` accepts; with
+    ``overwrite`` an existing file or a folder of the toolkit's. Never: a path inside a scene
+    folder, a run's record file (without ``overwrite``), a folder that holds a run (without
+    ``may_be_run`` or ``overwrite``), a special file (device, pipe, socket).
+
+    Returns True when ``path`` exists (the caller writes over its own earlier output); raises
+    :class:`OutputError` (one line, the path and ``flag`` named) otherwise. Writers then write
+    through :mod:`baseline.fileio` (atomic) and mark the folders they create
+    (:func:`write_marker`).
+    """
+    import stat as _stat
+
+    p = Path(path).expanduser().absolute()
+    root = scene_root(p if folder else p.parent)
+    if root is not None and not (command == "make-scene" and root == p):
+        raise OutputError(f"{p}: inside the scene folder {root}; the toolkit never writes into "
+                          f"a scene: choose a path outside it")
+    try:
+        st = os.stat(p)
+    except FileNotFoundError:
+        return False
+    except OSError as e:
+        raise OutputError(f"{p}: cannot be checked ({e.strerror or e})") from None
+    want = _source_key(source)
+    in_run = (isinstance(want, str) and is_run_folder(Path(want))
+              and Path(want) in p.resolve().parents)
+    if not folder:
+        if _stat.S_ISDIR(st.st_mode):
+            raise OutputError(f"{p}: is a folder; give a file name")
+        if not _stat.S_ISREG(st.st_mode):
+            raise OutputError(f"{p}: not a regular file (a device, pipe or socket); choose "
+                              f"another path ({flag} does not apply to it)")
+        if p.name in RUN_FILES and is_run_folder(p.parent) and not overwrite:
+            raise OutputError(f"{p}: is the {p.name} of the run {p.parent}; writing there would "
+                              f"replace it (choose another path, or {flag})")
+        if overwrite or in_run or (own is not None and own(p)):
+            return True
+        raise OutputError(f"{p}: exists and is not pgs {command}'s output for {_shown(want)}; "
+                          f"it is left as it is (choose another path, or {flag} to replace it)")
+    if not _stat.S_ISDIR(st.st_mode):
+        raise OutputError(f"{p}: exists and is not a folder")
+    if is_run_folder(p):
+        if may_be_run:
+            return True
+        raise OutputError(f"{p}: holds a run (config.toml with a checkpoint or results); "
+                          f"writing there would replace its records (choose another folder"
+                          + (f", or {flag})" if command == "train" else ")"))
+    entries = folder_entries(p)
+    if not entries or in_run:
+        return True
+    mark = read_marker(p) or _implied_marker(p)
+    if mark is not None:
+        if (mark.get("command") in (command, *shares) and mark.get("input") == want) \
+                or overwrite:
+            return True
+        had = mark.get("input")
+        if mark.get("command") == command and isinstance(had, dict) and isinstance(want, dict):
+            diff = ", ".join(f"{k}: {had.get(k)} -> {want.get(k)}" for k in want
+                             if had.get(k) != want.get(k))
+            raise OutputError(f"{p}: holds pgs {command}'s output for other arguments ({diff}); "
+                              f"choose another folder, or {flag} to replace it")
+        held = f"pgs {mark.get('command')}'s output for {_shown(had)}"
+        raise OutputError(f"{p}: holds {held}; choose another folder, or {flag} to write "
+                          f"pgs {command}'s output into it")
+    if own is not None and own(p):
+        return True
+    shown = ", ".join(entries[:4]) + (f" and {len(entries) - 4} more" if len(entries) > 4 else "")
+    raise OutputError(f"{p}: holds files pgs did not write ({shown}); choose an empty or new "
+                      f"folder ({flag} writes only into the toolkit's own folders)")
+
+
+def _implied_marker(folder: Path) -> dict | None:
+    """The toolkit's own records read as a marker where a folder has none: a run (its
+    ``scene.json``, written before the first checkpoint) is ``pgs train``'s output for its
+    scene; a synthetic scene (its ``synthetic.json``) is ``pgs make-scene``'s for its
+    arguments; a comparison or a benchmark (its ``results.json``, also in an archive of its
+    records) is ``pgs compare``'s for its scene or ``pgs benchmark``'s for its root."""
+    from baseline.fileio import read_json_bounded
+
+    def rec(name):
+        f = folder / name
+        if not f.is_file():
+            return None
+        try:
+            r = read_json_bounded(f, "a record", cap=1 << 20)
+        except ValueError:
+            return None
+        return r if isinstance(r, dict) else None
+
+    run = rec("scene.json")
+    if run is not None and isinstance(run.get("path"), str) and "views_digest" in run:
+        return {"command": "train", "input": run["path"]}
+    syn = rec("synthetic.json")
+    if syn is not None and syn.get("generator") == "baseline.data.synthetic":
+        return {"command": "make-scene",
+                "input": {k: v for k, v in syn.items() if k != "generator"}}
+    res = rec("results.json")
+    fmt = res.get("format") if res is not None else None
+    if fmt == "pgs-compare/1" and isinstance(res.get("scene"), str):
+        return {"command": "compare", "input": res["scene"]}
+    if fmt == "pgs-benchmark/1" and isinstance(res.get("root"), str):
+        return {"command": "benchmark", "input": res["root"]}
+    return None

@@ -147,6 +147,17 @@ def evaluate_trainer(trainer: Trainer, scene, render_dir: Optional[Path] = None,
                     render_dir=render_dir, lpips_fn=lpips_fn)
 
 
+def _scene_path(run_dir: Path) -> str:
+    """The scene a run records in its ``scene.json`` (read bounded)."""
+    from baseline.fileio import read_json_bounded
+
+    rec = read_json_bounded(run_dir / "scene.json", "a run's scene record")
+    if not isinstance(rec, dict) or not isinstance(rec.get("path"), str):
+        raise ValueError(  # noqa: TRY004 - a damaged record: bad input, exit 2
+            f"{run_dir / 'scene.json'}: holds no scene path; train the run again")
+    return rec["path"]
+
+
 def load_run(run_dir: str | Path, progress: bool = False,
              device: str | None = None) -> tuple[Trainer, object]:
     """Rebuild the trainer of a run folder from its config and checkpoint.
@@ -158,7 +169,7 @@ def load_run(run_dir: str | Path, progress: bool = False,
         if not (run_dir / name).exists():
             raise FileNotFoundError(f"{run_dir} is not a finished run folder: {name} is missing")
     cfg = from_toml(run_dir / "config.toml")
-    scene_path = json.loads((run_dir / "scene.json").read_text())["path"]
+    scene_path = _scene_path(run_dir)
     scene = load_scene_for(cfg, scene_path, progress=progress)
     trainer = Trainer(cfg, scene, run_dir, progress=progress, device=device)
     trainer.load_checkpoint(run_dir / CHECKPOINT_NAME)
@@ -201,11 +212,16 @@ class Renderable:
             self.cfg, self.model, self.phase = trainer.cfg, trainer.model, trainer.phase
             self.entropy = trainer.entropy
             self.coded = coded_state(trainer)
-            scene_path = scene_override or json.loads((target / "scene.json").read_text())["path"]
+            scene_path = scene_override or _scene_path(target)
             if scene_override is None:
                 self.scene = scene
         if not hasattr(self, "scene"):
             self.scene = load_scene_for(self.cfg, scene_path)
+        if self.phase == "decoded":     # a file's anchors against the scene it is drawn in
+            from baseline.data.scene import scene_bounds
+            from baseline.scaffold.model import check_bounds
+
+            check_bounds(self.model, str(target), *scene_bounds(self.scene))
         self.scene_path = scene_path
 
     def evaluate(self, split: str = "test", render_dir: Optional[Path] = None, lpips_fn=None) -> dict:

@@ -355,3 +355,125 @@ def test_warmup_fills_the_grid_kernel_cache(tmp_path, capsys):
     assert {"grid_fwd", "grid_bwd", "_bwd_range", "grid_fwd_exact"} <= names, names
     assert main(["warmup"]) == 0                   # the project's own cache: loads, no compile
     assert "warmup: CPU kernels compiled or loaded" in capsys.readouterr().out
+
+
+def _digests(*paths):
+    import hashlib
+    from pathlib import Path
+
+    return {str(f): hashlib.sha256(f.read_bytes()).hexdigest()
+            for p in paths for f in ([Path(p)] if Path(p).is_file() else
+                                     sorted(x for x in Path(p).rglob("*") if x.is_file()))}
+
+
+def test_existing_files_are_replaced_only_when_asked(trained, tmp_path, capsys):
+    """The one output rule: a path that exists is refused (exit 2, one line naming it and the
+    flag, every byte as it was) unless it is the command's own earlier output for the same
+    input or --overwrite is given; a folder of the user's files is never written into."""
+    _, scene, run = trained
+    user = tmp_path / "user"
+    user.mkdir()
+    (user / "results.json").write_text('{"mine": 1}')
+    dec = tmp_path / "dec"
+    dec.mkdir()
+    (dec / "point_cloud.ply").write_text("my cloud")
+    (dec / "results.json").write_text("{}")
+    ply, notes = tmp_path / "mine.ply", tmp_path / "notes.txt"
+    ply.write_text("my ply")
+    notes.write_text("my notes")
+    before = _digests(user, dec, ply, notes)
+    f = tmp_path / "m.pgs"
+    assert main(["encode", str(run), "-o", str(f)]) == 0
+    for cmd, path in ((["train", str(scene), "--out", str(user), "--patch", "demo"], user),
+                      (["decode", str(f), "-o", str(dec)], dec),
+                      (["decode", str(f), "-o", str(dec), "--overwrite"], dec),
+                      (["export-ply", str(run), "-o", str(ply)], ply),
+                      (["encode", str(run), "-o", str(notes)], notes)):
+        capsys.readouterr()
+        assert main(cmd) == 2, cmd
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and str(path) in err and "--overwrite" in err, err
+    assert _digests(user, dec, ply, notes) == before
+    # the command's own earlier output for the same input is rebuilt in place
+    assert main(["encode", str(run), "-o", str(f)]) == 0
+    out = tmp_path / "out"
+    assert main(["decode", str(f), "-o", str(out)]) == 0
+    assert main(["decode", str(f), "-o", str(out)]) == 0
+    assert json.loads((out / ".pgs-output").read_text()) == {"command": "decode",
+                                                            "input": str(f.resolve())}
+    g = tmp_path / "g.pgs"
+    assert main(["encode", str(run), "-o", str(g), "--weights", "float16"]) == 0
+    capsys.readouterr()
+    assert main(["decode", str(g), "-o", str(out)]) == 2      # another file's output folder
+    assert "holds pgs decode's output for" in capsys.readouterr().err
+    assert main(["export-ply", str(run), "-o", str(tmp_path / "e.ply")]) == 0
+    assert main(["export-ply", str(run), "-o", str(tmp_path / "e.ply")]) == 0
+    # asked: --overwrite replaces a file
+    assert main(["export-ply", str(run), "-o", str(ply), "--overwrite"]) == 0
+    assert ply.read_bytes().startswith(b"ply\n")
+
+
+def test_make_scene_ranges_and_replacing_a_scene(tmp_path, capsys):
+    """make-scene refuses NaN / infinite detail and views, sizes beyond their ranges; onto a
+    scene of other arguments it is refused (every file kept), with --overwrite the scene is
+    replaced whole (no stale images); its own scene for the same arguments is rebuilt."""
+    s = tmp_path / "s"
+    small = ["--width", "24", "--height", "18"]
+    for bad, msg in ((["--detail", "nan"], "--detail (texture_detail) must be finite"),
+                     (["--detail", "inf"], "must be finite"),
+                     (["--detail", "-1"], "out of range"),
+                     (["--views", "1000000"], "--views (n_views) = 1000000 is out of range"),
+                     (["--width", "100000"], "out of range"),
+                     (["--views", "2000", "--width", "4096", "--height", "4096"], "pixels")):
+        assert main(["make-scene", str(s), *bad]) == 2, bad
+        assert msg in capsys.readouterr().err, bad
+    assert not s.exists() and not list(tmp_path.iterdir())
+    assert main(["make-scene", str(s), "--views", "6", *small]) == 0
+    before = _digests(s)
+    assert len(list((s / "images").iterdir())) == 6
+    assert main(["make-scene", str(s), "--views", "2", *small]) == 2
+    err = capsys.readouterr().err
+    assert "other arguments (n_views: 6 -> 2)" in err and "--overwrite" in err
+    assert _digests(s) == before
+    assert main(["make-scene", str(s), "--views", "6", *small]) == 0     # the same: rebuilt
+    assert _digests(s) == before
+    assert main(["make-scene", str(s), "--views", "2", *small, "--overwrite"]) == 0
+    assert sorted(p.name for p in (s / "images").iterdir()) == ["view_000.png", "view_001.png"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["s"]          # no temporary left
+    user = tmp_path / "u"
+    user.mkdir()
+    (user / "a.txt").write_text("x")
+    assert main(["make-scene", str(user), "--overwrite"]) == 2
+    assert "holds files pgs did not write (a.txt)" in capsys.readouterr().err
+
+
+def test_an_interrupted_make_scene_leaves_no_half_scene(tmp_path):
+    """SIGTERM during a long generation: exit 130, no scene folder and no temporary left; a
+    scene being replaced (--overwrite) stays as it was."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    def interrupted(out, *extra):
+        p = subprocess.Popen([sys.executable, "-m", "baseline.cli", "make-scene", str(out),
+                              "--views", "400", "--width", "64", "--height", "48", *extra],
+                             stderr=subprocess.PIPE, text=True, env=dict(os.environ))
+        t0 = time.time()
+        while not list(tmp_path.glob(f".{out.name}.partial-*/images/view_002.png")):
+            assert p.poll() is None and time.time() - t0 < 300
+            time.sleep(0.1)
+        p.send_signal(signal.SIGTERM)
+        _, err = p.communicate(timeout=120)
+        return p.returncode, err
+
+    rc, err = interrupted(tmp_path / "s")
+    assert rc == 130 and "interrupted" in err
+    assert sorted(tmp_path.iterdir()) == []
+    old = tmp_path / "old"
+    assert main(["make-scene", str(old), "--views", "3", "--width", "24", "--height", "18"]) == 0
+    before = _digests(old)
+    rc, _ = interrupted(old, "--overwrite")
+    assert rc == 130 and _digests(old) == before
+    assert [p.name for p in tmp_path.iterdir()] == ["old"]

@@ -68,3 +68,20 @@ def test_hostile_lattice_position_files_are_refused_cleanly(decoded_files, tmp_p
     st = run_cases(cases, cap_mb=1024, timeout=120.0)
     assert not st["findings"], "\n".join(f"{n}: {f}" for n, f in st["findings"][:30])
     assert st["refused"] == sum(c.must_fail for c in cases)
+
+
+def test_special_and_sparse_inputs_are_refused_cleanly(decoded_files):
+    """Inputs that are not a file's bytes: /proc/self/pagemap (size 0, never ends), /dev/zero,
+    a FIFO nothing writes to, and a file whose first section is declared 1.5 GiB (table CRC
+    valid) and extended sparsely to match: each refused with one line naming it, within the
+    worker's 1 GiB memory cap (a reader that kept the section before its CRC failed would hit
+    it) and its timeout (a blocking open or an endless read would hang)."""
+    from baseline.codec.hostile import special_cases
+
+    files = {"baseline": (decoded_files["baseline"] / "model.pgs").read_bytes()}
+    cases = special_cases(files)
+    assert [c.path for c in cases[:2]] == ["/proc/self/pagemap", "/dev/zero"] and cases[2].fifo
+    assert cases[3].size > (3 << 29)
+    st = run_cases(cases, cap_mb=1024, timeout=120.0)
+    assert not st["findings"], "\n".join(f"{n}: {f}" for n, f in st["findings"])
+    assert st["refused"] == len(cases) == 4

@@ -15,7 +15,8 @@ Layout (all integers little-endian)::
     ...           payloads, in table order, back to back; the file ends exactly after the last
 
 Because the table comes before the payloads, a reader knows the expected file size before it
-touches a payload: a file cut anywhere (also exactly at a section boundary) is reported as
+touches a payload (and a file is read section by section, each checked before the next is
+read): a file cut anywhere (also exactly at a section boundary) is reported as
 truncated *inside the section it cuts*, and every length is checked against the bytes present
 before anything is allocated. Each payload has its own CRC32, so a flipped byte is reported with
 the section's name. Every problem raises :class:`BitstreamError` (a ``ValueError``) whose
@@ -26,15 +27,16 @@ then ``os.replace``).
 """
 from __future__ import annotations
 
+import io
 import json
 import os
 import struct
 import zlib
 from collections import OrderedDict
-from pathlib import Path
 from typing import Iterable, Tuple, Union
 
-from baseline.fileio import write_bytes_atomic
+from baseline.fileio import (CHUNK, DEFAULT_MAX_FILE_MB, UnreadableFile,  # noqa: F401
+                             max_file_bytes, open_checked, read_bytes_bounded, write_bytes_atomic)
 
 MAGIC = b"PGS\x00"
 FORMAT_VERSION = 1
@@ -87,61 +89,15 @@ def write_container(path, header: dict, sections: Iterable[Tuple[str, bytes]]) -
     return write_bytes_atomic(path, build_container(header, sections))
 
 
-DEFAULT_MAX_FILE_MB = 4096
-
-
-def max_file_bytes() -> int:
-    """The largest ``.pgs`` file a reader accepts: ``PGS_MAX_FILE_MB`` (MiB, a finite number
-    above 0), else 4 GiB (truck files are 4-6 MB). Checked against the file's size before a
-    byte is read, so a device or an endless stream is never read into memory."""
-    env = os.environ.get("PGS_MAX_FILE_MB", "").strip()
-    if not env:
-        return DEFAULT_MAX_FILE_MB << 20
-    try:
-        mb = float(env)
-    except ValueError:
-        raise ValueError(f"PGS_MAX_FILE_MB={env!r} is not a number of MiB") from None
-    if not (mb > 0 and mb < float(1 << 40)):
-        raise ValueError(f"PGS_MAX_FILE_MB={env!r} must be a finite number of MiB above 0")
-    return int(mb * (1 << 20))
-
-
 def read_file_bytes(path: Union[str, os.PathLike], what: str = "a .pgs file") -> bytes:
     """The bytes of a regular file no larger than :func:`max_file_bytes`; a missing file, a
-    folder, a device / pipe / socket or a file over the cap is a :class:`BitstreamError` naming
-    it, raised before anything is read."""
-    where = str(path)
+    folder, a device / pipe / socket / ``/proc`` file or a file over the cap is a
+    :class:`BitstreamError` naming it, raised before anything is read
+    (:func:`baseline.fileio.read_bytes_bounded`)."""
     try:
-        st = os.stat(path)
-    except FileNotFoundError:
-        raise BitstreamError(f"{where}: no such file") from None
-    except OSError as e:
-        raise BitstreamError(f"{where}: cannot read it ({e.strerror or e})") from None
-    import stat as _stat
-
-    if _stat.S_ISDIR(st.st_mode):
-        raise BitstreamError(f"{where}: is a directory, not {what}")
-    if not _stat.S_ISREG(st.st_mode):
-        raise BitstreamError(f"{where}: not a regular file (a device, pipe or socket), not {what}")
-    cap = max_file_bytes()
-    if st.st_size > cap:
-        raise BitstreamError(f"{where}: {st.st_size} bytes, above the {cap}-byte cap for {what} "
-                             f"(PGS_MAX_FILE_MB raises it)")
-    try:
-        with open(path, "rb") as f:
-            # read(n) allocates n bytes up front: ask for the size stat gave (plus one byte to
-            # see a file that grew), then at most the cap in bounded chunks
-            data = f.read(st.st_size + 1)
-            while len(data) <= cap:
-                more = f.read(min(1 << 24, cap + 1 - len(data)))
-                if not more:
-                    break
-                data += more
-    except OSError as e:
-        raise BitstreamError(f"{where}: cannot read it ({e.strerror or e})") from None
-    if len(data) > cap:                  # grew while being read
-        raise BitstreamError(f"{where}: more than the {cap}-byte cap for {what}")
-    return data
+        return read_bytes_bounded(path, what)
+    except UnreadableFile as e:
+        raise BitstreamError(str(e)) from None
 
 
 def read_container(src: Union[str, os.PathLike, bytes, bytearray, memoryview]):
@@ -149,30 +105,67 @@ def read_container(src: Union[str, os.PathLike, bytes, bytearray, memoryview]):
 
     Raises :class:`BitstreamError` naming the problem (and the section) for any damage.
     """
+    header, sections, _ = read_container_sized(src)
+    return header, sections
+
+
+def read_container_sized(src) -> tuple:
+    """:func:`read_container` plus the container's byte count.
+
+    A file is streamed: the preamble, header and section table are read and checked first (each
+    length against the file's size), then each section is read and its CRC checked before the
+    next one is read; the first bad section stops the read. A section above
+    :data:`STREAM_CHECK_BYTES` has its CRC checked on bounded chunks before its bytes are
+    kept, so a damaged or hostile file never makes the reader hold more than that. A file
+    whose size the OS does not report is read whole, up to ``PGS_MAX_FILE_MB``."""
     if isinstance(src, (bytes, bytearray, memoryview)):
         data = bytes(src)
-        where = "<bytes>"
-    else:
-        where = str(src)
-        data = read_file_bytes(src)
-    return _parse(data, where)
+        return (*_parse_stream(io.BytesIO(data), len(data), "<bytes>"), len(data))
+    where = str(src)
+    try:
+        f, size, cap = open_checked(src, "a .pgs file")
+    except UnreadableFile as e:
+        raise BitstreamError(str(e)) from None
+    with f:
+        if size == 0:                   # not reported (or empty): bounded by the cap alone
+            f.close()
+            data = read_file_bytes(src)
+            return (*_parse_stream(io.BytesIO(data), len(data), where), len(data))
+        try:
+            return (*_parse_stream(f, size, where), size)
+        except OSError as e:
+            raise BitstreamError(f"{where}: cannot read it ({e.strerror or e})") from None
+
+
+STREAM_CHECK_BYTES = 64 << 20
 
 
 def _parse(data: bytes, where: str):
-    size = len(data)
+    """Parse container bytes -> ``(header, sections)``."""
+    return _parse_stream(io.BytesIO(data), len(data), where)
 
+
+def _parse_stream(f, size: int, where: str):
+    """Parse the container of ``size`` bytes readable from ``f`` (at its start)."""
     def err(msg):
         return BitstreamError(f"{where}: {msg}")
 
+    def take(n: int, part: str) -> bytes:
+        b = f.read(n)
+        if len(b) != n:                 # the file shrank while being read
+            raise err(f"truncated in {part} (needs {n} bytes, {len(b)} read)")
+        return b
+
     if size == 0:
         raise err("empty file (zero length), not a .pgs file")
-    if data[:4] != MAGIC:
-        if size < 4 and MAGIC.startswith(data):
+    pre = f.read(_PRE.size)
+    if pre[:4] != MAGIC:
+        if size < 4 and MAGIC.startswith(pre):
             raise err(f"truncated in the preamble ({size} bytes)")
         raise err("wrong magic: not a .pgs file")
     if size < _PRE.size:
         raise err(f"truncated in the preamble ({size} of {_PRE.size} bytes)")
-    _, version, hlen, nsec = _PRE.unpack_from(data, 0)
+    _, version, hlen, nsec = _PRE.unpack_from(pre, 0)
     if version not in SUPPORTED_VERSIONS:
         raise err(f"unsupported .pgs format version {version} (this reader supports "
                   f"{', '.join(map(str, SUPPORTED_VERSIONS))})")
@@ -181,10 +174,9 @@ def _parse(data: bytes, where: str):
         raise err(f"absurd header length {hlen} (damaged preamble)")
     if hlen + _CRC.size > size - off:
         raise err(f"truncated in the header (needs {hlen + _CRC.size} bytes, {size - off} left)")
-    hdr = data[off:off + hlen]
-    off += hlen
-    (hcrc,) = _CRC.unpack_from(data, off)
-    off += _CRC.size
+    hdr = take(hlen, "the header")
+    (hcrc,) = _CRC.unpack(take(_CRC.size, "the header"))
+    off += hlen + _CRC.size
     if crc32(hdr) != hcrc:
         raise err("CRC mismatch in the header")
     try:
@@ -199,24 +191,25 @@ def _parse(data: bytes, where: str):
     if nsec * min_entry + _CRC.size > size - off:
         raise err(f"truncated in the section table ({nsec} sections need at least "
                   f"{nsec * min_entry + _CRC.size} bytes, {size - off} left)")
-    table_start = off
+    table = bytearray()                 # entries are read one by one, each length checked
     entries = []
     for i in range(nsec):
         if off + _NAME_LEN.size > size:
             raise err(f"truncated in the section table (entry {i})")
-        (nl,) = _NAME_LEN.unpack_from(data, off)
+        head = take(_NAME_LEN.size, "the section table")
+        (nl,) = _NAME_LEN.unpack(head)
         off += _NAME_LEN.size
         if nl == 0 or off + nl + _ENTRY.size > size:
             raise err(f"truncated or damaged section table (entry {i})")
-        raw_name = data[off:off + nl]
-        off += nl
-        plen, pcrc = _ENTRY.unpack_from(data, off)
-        off += _ENTRY.size
-        entries.append((raw_name, plen, pcrc))
+        body = take(nl + _ENTRY.size, "the section table")
+        off += nl + _ENTRY.size
+        table += head + body
+        plen, pcrc = _ENTRY.unpack_from(body, nl)
+        entries.append((body[:nl], plen, pcrc))
     if off + _CRC.size > size:
         raise err("truncated in the section table")
-    (tcrc,) = _CRC.unpack_from(data, off)
-    if crc32(data[table_start:off]) != tcrc:
+    (tcrc,) = _CRC.unpack(take(_CRC.size, "the section table"))
+    if crc32(bytes(table)) != tcrc:
         raise err("CRC mismatch in the section table")
     off += _CRC.size
     names = []
@@ -232,7 +225,17 @@ def _parse(data: bytes, where: str):
         remaining = size - off
         if plen > remaining:
             raise err(f"truncated in section '{name}' (needs {plen} bytes, {remaining} left)")
-        payload = data[off:off + plen]
+        part = f"section '{name}'"
+        if plen > STREAM_CHECK_BYTES:   # check the CRC on chunks before keeping anything
+            start, c, left = f.tell(), 0, plen
+            while left:
+                chunk = take(min(CHUNK, left), part)
+                c = zlib.crc32(chunk, c)
+                left -= len(chunk)
+            if (c & 0xFFFFFFFF) != pcrc:
+                raise err(f"CRC mismatch in section '{name}'")
+            f.seek(start)
+        payload = take(plen, part)
         off += plen
         if crc32(payload) != pcrc:
             raise err(f"CRC mismatch in section '{name}'")
@@ -244,8 +247,6 @@ def _parse(data: bytes, where: str):
 
 def container_summary(src) -> list:
     """``[(name, payload bytes)]`` including the framing as ``(_framing, bytes)``; for reports."""
-    data = src if isinstance(src, (bytes, bytearray)) else read_file_bytes(src)
-    header, sections = _parse(bytes(data), "<summary>" if isinstance(src, (bytes, bytearray))
-                              else str(src))
+    _, sections, size = read_container_sized(src)
     payload = sum(len(p) for p in sections.values())
-    return [(n, len(p)) for n, p in sections.items()] + [("_framing", len(data) - payload)]
+    return [(n, len(p)) for n, p in sections.items()] + [("_framing", size - payload)]

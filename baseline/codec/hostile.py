@@ -1,7 +1,9 @@
 """Hostile ``.pgs`` inputs and a decoder harness that runs them under a memory cap.
 
 ``crafted_cases(files)`` builds, from valid files (e.g. a HAC and a Predict-GS file), the inputs
-a hostile but fair tester tries: truncations, byte and bit flips, header fields edited (CRCs
+a hostile but fair tester tries (``special_cases(files)`` adds those that are not bytes: a
+``/proc`` file that never ends, a device, a FIFO, a sparse file declaring a 1.5 GiB section):
+truncations, byte and bit flips, header fields edited (CRCs
 recomputed, so the container is valid), sections swapped between the files or removed, declared
 sizes far beyond the bytes present, and "deep" edits inside a section's payload with the whole
 file re-signed (section digests recomputed) so they reach the inner decoders. Each case says
@@ -30,6 +32,7 @@ import subprocess
 import sys
 import tempfile
 import time
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional
@@ -40,9 +43,15 @@ from baseline.codec.header import CODING_DEFAULTS
 
 @dataclass
 class Case:
+    """``data`` written to a file and decoded; ``size``: the file then extended (sparsely) to
+    that many bytes; ``path``: decode this path as it is instead (``data`` unused); ``fifo``:
+    the case file is a named pipe nothing writes to."""
     name: str
     data: bytes
     must_fail: bool = True
+    size: int | None = None
+    path: str | None = None
+    fifo: bool = False
 
 
 # ------------------------------------------------------------------------------- building
@@ -211,6 +220,31 @@ def crafted_cases(files: dict, n_random: int = 200, seed: int = 0) -> list:
                     swapped = [(n, sb[nm] if n == nm else p) for n, p in sa.items()]
                     cases.append(Case(f"{a}: section {nm} taken from {b}",
                                       build_container(ha, swapped)))
+    return cases
+
+
+def special_cases(files: dict, sparse_bytes: int = 3 << 29) -> list:
+    """Inputs that are not a file's bytes: kernel files that report size 0 and never end or
+    never answer (``/proc/self/pagemap``, ``/dev/zero``, a FIFO nothing writes to), and a file
+    declaring a first section of ``sparse_bytes`` (table CRC valid) extended sparsely to match,
+    so that only reading the section finds its CRC wrong: a reader that keeps a section before
+    checking it holds more than the harness's memory cap."""
+    cases = [Case("/proc/self/pagemap (size 0, endless)", b"", path="/proc/self/pagemap"),
+             Case("/dev/zero (a device)", b"", path="/dev/zero"),
+             Case("a FIFO nothing writes to", b"", fifo=True)]
+    for label, data in files.items():
+        _, secs = _parse(data, label)
+        first = next(iter(secs))
+        hlen = struct.unpack_from("<I", data, 6)[0]
+        t0 = 14 + hlen + 4                                 # the section table
+        t1 = len(data) - sum(len(p) for p in secs.values()) - 4      # its CRC
+        nl = struct.unpack_from("<H", data, t0)[0]
+        b = bytearray(data)
+        struct.pack_into("<Q", b, t0 + 2 + nl, sparse_bytes)
+        struct.pack_into("<I", b, t1, zlib.crc32(bytes(b[t0:t1])) & 0xFFFFFFFF)
+        total = len(data) - len(secs[first]) + sparse_bytes
+        cases.append(Case(f"{label}: section {first} declared {sparse_bytes} bytes, file "
+                          f"extended sparsely to {total}", bytes(b), size=total))
     return cases
 
 
@@ -393,10 +427,18 @@ class DecodeHarness:
             self.close()
         if self.proc is None or self.proc.poll() is not None:
             self._start()
-        path = os.path.join(self.dir, "case.pgs")
-        with open(path, "wb") as f:
-            f.write(case.data)
-        shutil.rmtree(path + ".out", ignore_errors=True)
+        path = case.path or os.path.join(self.dir, "case.pgs")
+        if case.path is None:
+            if os.path.lexists(path):
+                os.unlink(path)
+            if case.fifo:
+                os.mkfifo(path)
+            else:
+                with open(path, "wb") as f:
+                    f.write(case.data)
+                    if case.size is not None:       # a sparse file: no bytes on disk
+                        f.truncate(case.size)
+            shutil.rmtree(path + ".out", ignore_errors=True)
         t0 = time.perf_counter()
         self.proc.stdin.write(path + "\n")
         self.proc.stdin.flush()
@@ -469,7 +511,7 @@ def main(argv=None) -> int:
         _worker()
         return 0
     files = {Path(f).parent.name + "/" + Path(f).name: Path(f).read_bytes() for f in args.files}
-    cases = crafted_cases(files, args.random, args.seed)
+    cases = crafted_cases(files, args.random, args.seed) + special_cases(files)
     t0 = time.perf_counter()
     st = run_cases(cases, args.cap_mb, echo=print)
     print(f"{st['cases']} cases in {time.perf_counter() - t0:.0f} s: {st['refused']} refused "

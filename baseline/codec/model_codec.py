@@ -37,8 +37,8 @@ import numpy as np
 import torch
 import torch.nn as nn
 
-from baseline.codec.container import BitstreamError, read_container, read_file_bytes, write_container
-from baseline.codec.header import CODING_DEFAULTS, check_header, digest_sections
+from baseline.codec.container import BitstreamError, read_container_sized, write_container
+from baseline.codec.header import CODING_DEFAULTS, check_header, digest_sections, memory_budget
 from baseline.codec.masks import decode_mask_patterns, encode_mask_patterns, mask_pattern_counts
 from baseline.codec.lattice import (decode_lattice, encode_lattice, lattice_coordinates,
                                     lattice_positions)
@@ -129,12 +129,19 @@ def _load_module_sections(prefix: str, module: nn.Module, sections: dict, used_x
 
 
 @torch.no_grad()
-def encode_model(cfg, model, entropy, path: str | Path, extra_header: Optional[dict] = None) -> dict:
+def encode_model(cfg, model, entropy, path: str | Path, extra_header: Optional[dict] = None,
+                 scene_bounds: tuple | None = None) -> dict:
     """Write ``model`` (+ its entropy model) to ``path``; returns stats incl. per-section bytes.
 
-    Rounds the live networks to the stored precision (in place).
+    Rounds the live networks to the stored precision (in place). Refused first (nothing
+    written) when its anchors, scales or offsets are non-finite or, given the scene's
+    ``scene_bounds`` ``(centre [3], extent)`` (:func:`baseline.data.scene.scene_bounds`), far
+    outside it (:func:`baseline.scaffold.model.check_bounds`).
     """
     from baseline.config import to_dict
+    from baseline.scaffold.model import check_bounds
+
+    check_bounds(model, f"encoding {path}", *(scene_bounds or ()))
 
     t0 = time.perf_counter()
     precision = cfg.codec.weight_dtype
@@ -265,26 +272,38 @@ def decode_model(path: str | Path, max_bytes: Optional[int] = None) -> DecodedMo
     Every failure is one :class:`BitstreamError` naming the file and the section or header
     field: the header is checked field by field and against the sections (their keyed digests
     bind them to this file) before anything is allocated, and the planned allocation against
-    ``max_bytes`` (default :func:`baseline.codec.header.memory_budget`).
+    ``max_bytes`` (default :func:`baseline.codec.header.memory_budget`). An allocation that
+    fails all the same (a budget raised beyond the machine, an address-space limit) is one
+    :class:`baseline.memory.AllocationError` naming the file, the size, the plan and budget.
     """
+    from baseline.memory import AllocationError, describe, is_allocation_failure
+
+    plan: dict = {}
     try:
         with expect_precision(None):          # declared once the header is read
-            return _decode_model(path, max_bytes)
+            return _decode_model(path, max_bytes, plan)
     except BitstreamError as e:
         msg = str(e)
         raise BitstreamError(msg if msg.startswith(str(path)) else f"{path}: {msg}") from None
+    except (MemoryError, RuntimeError) as e:
+        if isinstance(e, AllocationError) or not is_allocation_failure(e):
+            raise
+        what = f"decoding {path}" + (f" ({plan['n']} anchors)" if "n" in plan else "")
+        raise AllocationError(describe(what, e, plan.get("planned"), plan.get("budget"),
+                                       "PGS_DECODE_MEMORY_MB sets it")) from None
 
 
-def _decode_model(path, max_bytes) -> DecodedModel:
+def _decode_model(path, max_bytes, plan: dict) -> DecodedModel:
     from baseline import registry
     from baseline.config import ConfigError, apply_overlay, default_config, validate
     from baseline.hac.entropy import build_entropy_model
     from baseline.scaffold.model import AnchorModel
 
     t0 = time.perf_counter()
-    header, sections = read_container(path)
-    size = Path(path).stat().st_size if not isinstance(path, (bytes, bytearray)) else len(path)
+    header, sections, size = read_container_sized(path)
     facts = check_header(header, sections, size, max_bytes)
+    plan.update(n=facts.n_anchors, planned=facts.planned_bytes,
+                budget=memory_budget(size, max_bytes))
     declare_precision(facts.weight_dtype)
     N, K = facts.n_anchors, facts.n_offsets
     lo, hi = (np.asarray(b, dtype=np.float32) for b in facts.bounds)
@@ -441,19 +460,13 @@ def section_label(name: str, header: dict) -> str:
 def file_info(path: str | Path) -> dict:
     """Per-section and per-group allocation read from the file itself (its header checked as
     the decoder checks it)."""
-    raw = read_file_bytes(path)
+    header, sections, total = read_container_sized(path)
     try:
-        header, sections = read_container(raw)
-    except BitstreamError as e:
-        msg = str(e).replace("<bytes>", str(path), 1)
-        raise BitstreamError(msg if msg.startswith(str(path)) else f"{path}: {msg}") from None
-    try:
-        check_header(header, sections, len(raw), max_bytes=1 << 62)   # reads, allocates nothing
+        check_header(header, sections, total, max_bytes=1 << 62)   # reads, allocates nothing
     except BitstreamError as e:
         raise BitstreamError(f"{path}: {e}") from None
     rows = [{"section": n, "label": section_label(n, header), "bytes": len(b),
              "group": section_group(n, header)} for n, b in sections.items()]
-    total = len(raw)
     groups: dict[str, int] = {}
     for r in rows:
         groups[r["group"]] = groups.get(r["group"], 0) + r["bytes"]

@@ -35,8 +35,14 @@ def _raw_alpha_spec() -> "oiio.ImageSpec":
 
 
 def _open(path: Path) -> "oiio.ImageInput":
-    if not Path(path).is_file():
+    from baseline.fileio import UnreadableFile, check_readable
+
+    if not Path(path).exists():
         raise SceneError(f"image file not found: {path}")
+    try:                         # a FIFO or a device would block or never end
+        check_readable(path, "an image")
+    except UnreadableFile as e:
+        raise SceneError(str(e)) from None
     inp = oiio.ImageInput.open(str(path), _raw_alpha_spec())
     if inp is None:
         raise SceneError(f"cannot read image {path}: {oiio.geterror() or 'unknown format'} "

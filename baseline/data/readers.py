@@ -84,15 +84,13 @@ MAX_JSON_BYTES = 256 << 20
 
 def read_bounded(path: Path, cap: int) -> str:
     """A text file's content, refused above ``cap`` bytes or when it is not a regular file
-    (a device or pipe is never read to its end)."""
-    import stat
+    (a device, pipe or /proc file is never read to its end: :mod:`baseline.fileio`)."""
+    from baseline.fileio import UnreadableFile, read_text_bounded
 
-    st = path.stat()
-    if not stat.S_ISREG(st.st_mode):
-        raise SceneError(f"{path}: not a regular file")
-    if st.st_size > cap:
-        raise SceneError(f"{path}: {st.st_size} bytes, more than the {cap} a scene file may have")
-    return path.read_text()
+    try:
+        return read_text_bounded(path, "a scene file", cap=cap)
+    except UnreadableFile as e:
+        raise SceneError(str(e)) from None
 
 
 # the smallest record of each COLMAP binary file (bytes): cameras (id, model, width, height, one
@@ -108,7 +106,12 @@ def check_colmap_bin(path: Path, kind: str) -> None:
     it allocate gigabytes). The walk reads counts only; pycolmap parses the values."""
     import struct
 
-    data = path.read_bytes()
+    from baseline.fileio import UnreadableFile, read_bytes_bounded
+
+    try:
+        data = read_bytes_bounded(path, f"a COLMAP {kind}.bin file")
+    except UnreadableFile as e:
+        raise SceneError(str(e)) from None
     size = len(data)
 
     def bad(what):

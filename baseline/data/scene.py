@@ -248,6 +248,15 @@ def cameras_extent(cameras: list[Camera]) -> float:
     return ext
 
 
+def scene_bounds(scene) -> tuple[torch.Tensor, float]:
+    """``(centre [3], extent)`` of a scene: the mean training camera centre and
+    :func:`cameras_extent` (what :func:`baseline.scaffold.model.check_bounds` measures against)."""
+    cams = scene.train_cameras or scene.test_cameras
+    if not cams:
+        return torch.zeros(3), float(scene.extent)
+    return torch.stack([c.center.double() for c in cams]).mean(0).float(), float(scene.extent)
+
+
 # ---------------------------------------------------------------------------------- load_scene
 def load_scene(path: str | os.PathLike, resolution: int = -1, images: str | None = None,
                eval: bool = True, test_every: int = 8, background=(0.0, 0.0, 0.0),

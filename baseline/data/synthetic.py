@@ -18,6 +18,9 @@ from __future__ import annotations
 import json
 import math
 import os
+import secrets
+import shutil
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -25,6 +28,7 @@ import numpy as np
 import pycolmap
 
 from baseline.fileio import write_text_atomic
+from baseline.guard import check_output, write_marker
 
 from .images import to_uint8, write_png_atomic
 
@@ -270,7 +274,7 @@ def make_camera(model: str, width: int, height: int, focal: float,
 def make_scene(out_dir: str | os.PathLike, n_views: int = 40, width: int = 160, height: int = 120,
                seed: int = 0, texture_detail: float = 1.0, n_points: int = 3000,
                camera_model: str = "PINHOLE", distortion=(), shared_camera: bool = True,
-               fov_deg: float = 55.0) -> Path:
+               fov_deg: float = 55.0, overwrite: bool = False) -> Path:
     """Write a synthetic COLMAP scene and return its folder.
 
     Args:
@@ -285,8 +289,103 @@ def make_scene(out_dir: str | os.PathLike, n_views: int = 40, width: int = 160, 
             ``"OPENCV", (k1, k2, p1, p2)``); the images are rendered through that model.
         shared_camera: one camera for all views (else one camera id per view, same parameters).
         fov_deg: horizontal field of view of the pinhole part.
+        overwrite: replace a scene of the toolkit written with other arguments.
+
+    Every argument is checked against its range first (:data:`RANGES`: finite, bounded views,
+    sizes and points). The output is checked by :func:`baseline.guard.check_output`: a new or
+    empty folder, or this function's own scene for the same arguments; with ``overwrite`` any
+    scene of the toolkit. The scene is written into a temporary sibling folder and renamed onto
+    ``out_dir`` at the end (a replaced scene is removed only then): an error, Ctrl-C or SIGTERM
+    during the generation leaves no half scene and the old one as it was.
     """
-    out = Path(out_dir)
+    params = check_scene_args(n_views=n_views, width=width, height=height, seed=seed,
+                              texture_detail=texture_detail, n_points=n_points,
+                              camera_model=camera_model, distortion=list(distortion),
+                              shared_camera=shared_camera, fov_deg=fov_deg)
+    final = Path(out_dir)
+    exists = check_output(final, command="make-scene", source=params, folder=True,
+                          overwrite=overwrite)
+    final.parent.mkdir(parents=True, exist_ok=True)
+    tag = secrets.token_hex(4)
+    out = final.parent / f".{final.name}.partial-{tag}"
+    try:
+        with _sigterm_as_interrupt():
+            _write_scene(out, n_views, width, height, seed, texture_detail, n_points,
+                         camera_model, distortion, shared_camera, fov_deg)
+            write_marker(out, "make-scene", params)
+            if exists:                              # swap: the old scene goes only now
+                old = final.parent / f".{final.name}.old-{tag}"
+                os.rename(final, old)
+                os.rename(out, final)
+                shutil.rmtree(old, ignore_errors=True)
+            else:
+                os.rename(out, final)
+    except BaseException:
+        shutil.rmtree(out, ignore_errors=True)
+        raise
+    return final
+
+
+# make-scene's arguments: (low, high) like the config's RANGES; sizes bound the run time (the
+# ray tracer's cost is views x width x height) and what is written
+RANGES = {"n_views": (1, 2000), "width": (1, 4096), "height": (1, 4096),
+          "seed": (0, 2 ** 63 - 1), "texture_detail": (0.0, 16.0), "n_points": (1, 10_000_000),
+          "fov_deg": (1.0, 170.0)}
+MAX_PIXELS = 400_000_000           # views x width x height (the default scene: 768,000)
+_FLAGS = {"n_views": "--views", "width": "--width", "height": "--height", "seed": "--seed",
+          "texture_detail": "--detail"}
+
+
+def check_scene_args(**kw) -> dict:
+    """``kw`` checked against :data:`RANGES` (integers where integers are meant, numbers
+    finite) and :data:`MAX_PIXELS`; returns them as the scene's parameters, or raises
+    ``ValueError`` naming the argument."""
+    for key, (lo, hi) in RANGES.items():
+        v = kw[key]
+        name = f"make-scene {_FLAGS[key]} ({key})" if key in _FLAGS else f"make-scene {key}"
+        integral = isinstance(lo, int)
+        if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)):
+            raise ValueError(  # noqa: TRY004 - a bad argument: one line, exit 2
+                f"{name}: expected {'an integer' if integral else 'a number'}, got {v!r}")
+        if not math.isfinite(float(v)):
+            raise ValueError(f"{name} must be finite, got {v}")
+        if integral and not float(v).is_integer():
+            raise ValueError(f"{name}: expected an integer, got {v!r}")
+        if not lo <= v <= hi:
+            raise ValueError(f"{name} = {v} is out of range [{lo}, {hi}]")
+        kw[key] = int(v) if integral else float(v)
+    px = kw["n_views"] * kw["width"] * kw["height"]
+    if px > MAX_PIXELS:
+        raise ValueError(f"make-scene: {kw['n_views']} views of {kw['width']} x {kw['height']} "
+                         f"are {px} pixels, more than the {MAX_PIXELS} a synthetic scene may have")
+    if any(not math.isfinite(float(x)) for x in kw["distortion"]):
+        raise ValueError(f"make-scene distortion must be finite, got {kw['distortion']}")
+    return kw
+
+
+@contextmanager
+def _sigterm_as_interrupt():
+    """SIGTERM raises KeyboardInterrupt while the block runs (in the main thread), so the
+    partial scene is removed as it is on Ctrl-C."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def handler(signum, frame):
+        raise KeyboardInterrupt
+
+    old = signal.signal(signal.SIGTERM, handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, old)
+
+
+def _write_scene(out: Path, n_views, width, height, seed, texture_detail, n_points, camera_model,
+                 distortion, shared_camera, fov_deg) -> None:
     rng = np.random.default_rng([seed, 1])
     world = World(seed, texture_detail)
     focal = 0.5 * width / math.tan(math.radians(fov_deg) / 2)
@@ -332,4 +431,3 @@ def make_scene(out_dir: str | os.PathLike, n_views: int = 40, width: int = 160, 
             "n_points": len(pts), "camera_model": camera_model,
             "distortion": list(distortion), "shared_camera": shared_camera, "fov_deg": fov_deg}
     write_text_atomic(out / "synthetic.json", json.dumps(meta, indent=1))
-    return out

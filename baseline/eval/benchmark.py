@@ -29,7 +29,7 @@ from typing import Optional
 
 from baseline.eval.compare import BASELINE, parse_methods, plan_runs, is_finished, lpips_id
 from baseline.eval.executors import Job, make_executor
-from baseline.fileio import write_text_atomic
+from baseline.fileio import read_text_bounded, write_text_atomic
 
 PROTOCOLS = {"mip360": ("MipNeRF360", "mip360"), "tandt": ("TanksAndTemples", "tandt"),
              "deepblending": ("DeepBlending", "deepblending"),
@@ -86,17 +86,22 @@ def run_benchmark(root, out, vs: list[str] = (), lambdas=None, seeds=None, scene
                   protocol: Optional[str] = None, common_patches: list[str] = (),
                   sets: list[str] = (), executor: str = "local", executor_options=None,
                   lpips_weights: Optional[str] = None, plots: bool = True,
-                  progress: bool = True, echo: bool = True) -> dict:
+                  progress: bool = True, echo: bool = True, overwrite: bool = False) -> dict:
     from baseline.eval.compare import run_compare
+    from baseline.guard import check_output, write_marker
     from baseline.run import write_json_atomic
 
     out = Path(out).resolve()
+    # new, empty, this root's benchmark (to resume) or, with ``overwrite``, another of the
+    # toolkit's outputs; never a folder of the user's files
+    check_output(out, command="benchmark", source=root, folder=True, overwrite=overwrite)
     common = list(common_patches)
     if protocol is not None:
         if protocol not in PROTOCOLS:
             raise ValueError(f"--protocol {protocol!r}: one of {', '.join(PROTOCOLS)}")
         common = [PROTOCOLS[protocol][1]] + common
     scene_dirs = find_scenes(Path(root), scenes)
+    write_marker(out, "benchmark", root)
     allruns, jobs = plan_jobs(scene_dirs, out, list(vs), lambdas, seeds, common, list(sets),
                               lpips_weights)
     if echo:
@@ -280,7 +285,7 @@ def benchmark_records(out: Path) -> dict:
     (to compare two executions of one benchmark)."""
     rec = {}
     for p in sorted(Path(out).glob("*/runs/*/compare.json")):
-        r = json.loads(p.read_text())
+        r = json.loads(read_text_bounded(p, "a run's record"))
         d = r.get("decoded") or {}
         rec[f"{p.parent.parent.parent.name}/{p.parent.name}"] = (
             d.get("psnr"), d.get("ssim"), d.get("bytes"), d.get("anchors"))

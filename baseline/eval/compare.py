@@ -230,11 +230,14 @@ def float32_bytes(model_state: dict) -> int:
 def _stage_reference(spec: RunSpec, record: dict) -> None:
     import torch
 
+    from baseline.fileio import open_checked
     from baseline.run import CHECKPOINT_NAME
 
     ckpt = spec.dir / CHECKPOINT_NAME
     try:
-        state = torch.load(ckpt, map_location="cpu", weights_only=False)["model"]
+        f, _, _ = open_checked(ckpt, "a checkpoint")
+        with f:
+            state = torch.load(f, map_location="cpu", weights_only=False)["model"]
     except Exception as e:
         raise ValueError(f"cannot read the reference's checkpoint {ckpt}: {e}") from None
     n = state["per_anchor.xyz"].shape[0]
@@ -304,8 +307,10 @@ def _reference_stages(spec, scene_path, progress, stage) -> dict:
 def _read_json(path: Path) -> dict:
     if not path.exists():
         return {}
+    from baseline.fileio import read_text_bounded
+
     try:
-        return json.loads(path.read_text())
+        return json.loads(read_text_bounded(path, "a run's record"))
     except json.JSONDecodeError as e:
         raise ValueError(f"{path} is not valid JSON ({e}); delete it to redo that stage") from None
 
@@ -422,8 +427,10 @@ def _stage_encode(spec: RunSpec, scene_path: str, record: dict,
                    f"(phase '{trainer.phase}'); its file is coded with an untrained context model")
     settings = run_codec(spec, codec)
     cfg = dataclasses.replace(trainer.cfg, codec=CodecConfig(**settings))
+    from baseline.data.scene import scene_bounds
+
     st = encode_model(cfg, trainer.model, trainer.entropy, spec.dir / MODEL_FILE,
-                      extra_header=file_header(scene, scene_path))
+                      extra_header=file_header(scene, scene_path), scene_bounds=scene_bounds(scene))
     info = file_info(spec.dir / MODEL_FILE)
     record["encode"] = {"bytes": st["bytes"], "encode_s": st["encode_s"], "anchors": st["anchors"],
                         "phase": trainer.phase, "sections": info["sections"],
@@ -649,17 +656,30 @@ def make_row(spec: RunSpec, res: dict, record: dict) -> dict:
 RECORD_FILES = ("config.toml", "scene.json", "results.json", RECORD)
 
 
+def is_compare_folder(folder: Path) -> bool:
+    """A comparison's folder written before folders were marked (its ``runs/``)."""
+    return (Path(folder) / "runs").is_dir()
+
+
 def archive_records(out: str | Path, dest: str | Path,
-                    results: Optional[dict] = None) -> list[Path]:
+                    results: Optional[dict] = None, overwrite: bool = False) -> list[Path]:
     """Copy the records of the finished runs of comparison ``out`` (and its report, results
     and plots) to ``dest``: a few KB per run, no checkpoints or model files. Copied into another
     comparison's ``--out`` folder they are reported as finished (see :func:`records_only`).
     ``results``: the dict :func:`run_compare` returned; when given, only the runs it reports
     (and its reference) are kept, not other comparisons' runs that share ``out``.
+    ``dest`` is checked as ``--out`` is (:func:`baseline.guard.check_output`): new, empty, or
+    an archive of the same scene's comparison (``overwrite``: another of the toolkit's).
     Returns the run folders archived."""
     import shutil
 
+    from baseline.guard import check_output
+
     out, dest = Path(out), Path(dest)
+    scene = (results or _read_json(out / "results.json")).get("scene")
+    # an archive is a comparison's folder reduced to its records: the same rule as --out
+    check_output(dest, command="compare", source=scene, folder=True, own=is_compare_folder,
+                 overwrite=overwrite)
     keep = None
     if results is not None:
         rows = list(results["runs"]) + ([results["reference"]] if results.get("reference") else [])
@@ -740,7 +760,7 @@ def run_compare(scene: str | Path, out: str | Path, vs: list[str] = (),
                 codec: Optional[str] = None, seeds: Optional[list[int]] = None,
                 panel_views: Optional[list[int]] = None, paired_fps: bool = False,
                 scope: Optional[str] = None, lambda_for: Optional[list[list]] = None,
-                untimed: Optional[list[list[str]]] = None) -> dict:
+                untimed: Optional[list[list[str]]] = None, overwrite: bool = False) -> dict:
     """Run (or resume) a comparison; write ``out/results.json``, ``out/report.md`` and plots.
 
     ``only``: bring only the runs of these methods (``baseline``, a ``--vs`` value, or a name as
@@ -766,6 +786,8 @@ def run_compare(scene: str | Path, out: str | Path, vs: list[str] = (),
     ``lambdas`` (:func:`with_own_lambdas`).
     ``untimed``: ``[[RUN, WHY], ...]``, finished runs (folder names under ``out/runs``) whose
     training time is no measurement for a reason their record cannot show (:func:`mark_untimed`).
+    ``overwrite``: ``out`` may hold another output of the toolkit (else it is new, empty, or
+    this scene's comparison: :func:`baseline.guard.check_output`).
     """
     from baseline.eval.metrics import load_lpips
     from baseline.eval.report import format_report, write_report
@@ -798,10 +820,14 @@ def run_compare(scene: str | Path, out: str | Path, vs: list[str] = (),
 
     if not report_only:                 # a wrong scene path leaves no output folder behind
         from baseline.data.readers import detect_format
-        from baseline.guard import check_output_folder
+        from baseline.guard import check_output, write_marker
 
         detect_format(Path(scene_path))
-        check_output_folder(out)        # not a run's folder, not inside the scene
+        # not a run's folder, not inside the scene, not a folder of the user's files; a
+        # comparison of this scene (to resume) or, with ``overwrite``, another of the toolkit's
+        check_output(out, command="compare", source=scene_path, folder=True,
+                     overwrite=overwrite, own=is_compare_folder)
+        write_marker(out, "compare", scene_path)
     out.mkdir(parents=True, exist_ok=True)
 
     results = {

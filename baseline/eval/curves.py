@@ -26,8 +26,10 @@ def _mean(xs: list) -> Optional[float]:
 
 def read_log(path: str | Path) -> list[dict]:
     """The lines of a training log; a torn or foreign line ends it (as the trainer does)."""
+    from baseline.fileio import read_text_bounded
+
     out = []
-    for line in Path(path).read_text().splitlines():
+    for line in read_text_bounded(path, "a training log").splitlines():
         try:
             d = json.loads(line)
             int(d["it"])
@@ -77,8 +79,11 @@ def _schedule(run_dir: str | Path) -> Optional[int]:
     """``train.iterations`` of a run's config.toml; None when it cannot be read."""
     import tomllib
 
+    from baseline.fileio import read_text_bounded
+
     try:
-        return int(tomllib.loads((Path(run_dir) / "config.toml").read_text())["train"]["iterations"])
+        return int(tomllib.loads(read_text_bounded(Path(run_dir) / "config.toml", "a run's config"))
+                   ["train"]["iterations"])
     except (OSError, ValueError, KeyError, TypeError):
         return None
 
@@ -125,16 +130,19 @@ def values_per_anchor(run_dir: str | Path) -> Optional[int]:
     import tomllib
 
     from baseline.eval.report import rate_elements
+    from baseline.fileio import read_text_bounded
 
     run_dir = Path(run_dir)
     row = {}
     try:
-        row["rate_values_per_anchor"] = (tomllib.loads((run_dir / "config.toml").read_text())
+        row["rate_values_per_anchor"] = (tomllib.loads(read_text_bounded(run_dir / "config.toml",
+                                                                         "a run's config"))
                                          .get("entropy", {}).get("rate_values_per_anchor", 0))
     except (OSError, ValueError, TypeError):
         pass
     try:
-        row["attributes"] = json.loads((run_dir / "compare.json").read_text())["encode"]["attributes"]
+        row["attributes"] = json.loads(read_text_bounded(run_dir / "compare.json", "a run's record")
+                                       )["encode"]["attributes"]
     except (OSError, ValueError, KeyError, TypeError):
         pass
     return rate_elements(row) or None

@@ -40,10 +40,15 @@ def evaluate(model, scene, cameras, *, phase: str, entropy=None, backend: str = 
     sync = (torch.cuda.synchronize if model.xyz.is_cuda else (lambda *a: None))
     ps, ss, lp, times, counts = [], [], [], [], []
     n_vis = n_on = 0                     # visible anchors, mask-on Gaussians among their candidates
+    from baseline.memory import allocating
+
+    dev = str(model.xyz.device)
     for i, cam in enumerate(cameras):
         t0 = time.perf_counter()
-        res = render_view(model, cam, bg, phase=phase, training=False, entropy=entropy,
-                          backend=backend, coded=coded)
+        with allocating(f"rendering view {cam.name} ({cam.width} x {cam.height}, "
+                        f"{model.n_anchors} anchors)", device=dev):
+            res = render_view(model, cam, bg, phase=phase, training=False, entropy=entropy,
+                              backend=backend, coded=coded)
         img = res.render.image
         sync()                           # CUDA work is asynchronous: time it to the end
         times.append(time.perf_counter() - t0)

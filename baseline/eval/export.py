@@ -31,6 +31,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from baseline.eval.metrics import format_psnr
 from baseline.fileio import atomic_path
 
 SH_C0 = 0.28209479177387814
@@ -318,9 +319,9 @@ def export_sh_ply(model, scene, path, *, coded=None, sh_degree: int = 3,
         "means over the views that draw it",
         f"colour: SH degree {sh_degree} fitted by weighted least squares over the training "
         f"camera directions (3DGS basis)",
-        f"fidelity on {fid['views']} test views: PSNR {fid['psnr_vs_model']:.2f} dB against the "
-        f"decoded model's render; against the ground truth {fid['psnr_ply']:.2f} dB "
-        f"(decoded model {fid['psnr_model']:.2f} dB)"]
+        f"fidelity on {fid['views']} test views: PSNR {format_psnr(fid['psnr_vs_model'])} "
+        f"against the decoded model's render; against the ground truth "
+        f"{format_psnr(fid['psnr_ply'])} (decoded model {format_psnr(fid['psnr_model'])})"]
     n = write_ply(path, g["means"], g["quats"], g["scales"], g["opacities"], None, sh=g["sh"],
                   comments=comments)
     return {"gaussians": n, "drawn_per_view": per_view, "sh_degree": sh_degree, **fid,

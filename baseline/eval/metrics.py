@@ -61,6 +61,17 @@ def psnr(img, gt) -> float:
     return math.inf if mse == 0 else float(10.0 * np.log10(255.0 ** 2 / mse))
 
 
+def format_psnr(v: float, digits: int = 2) -> str:
+    """A PSNR for people: ``"25.31 dB"``, or what it is where it is no figure: infinite when
+    the images compared are identical (zero error; e.g. two renders that both drew nothing), or
+    undefined when nothing was measured (NaN)."""
+    if math.isinf(v):
+        return "infinite (the images compared are identical: zero error, no figure)"
+    if math.isnan(v):
+        return "undefined (no view measured)"
+    return f"{v:.{digits}f} dB"
+
+
 def ssim(img, gt) -> float:
     """SSIM of uint8-rounded images [H, W, C] with the 3DGS 11x11 Gaussian window (sigma 1.5)."""
     a, b = _pair(img, gt)
@@ -220,7 +231,11 @@ def load_lpips(weights: str | Path | None, device: str | torch.device = "cpu"
     for p in lpips_paths(weights):
         if not p.is_file():
             return None, f"{LPIPS_UNAVAILABLE} (no file at {p})"
-        part = torch.load(p, map_location="cpu", weights_only=True)
+        from baseline.fileio import open_checked
+
+        f, _, _ = open_checked(p, "LPIPS weights")
+        with f:
+            part = torch.load(f, map_location="cpu", weights_only=True)
         if isinstance(part, dict) and "state_dict" in part and isinstance(part["state_dict"], dict):
             part = part["state_dict"]
         if not isinstance(part, dict):

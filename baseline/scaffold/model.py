@@ -391,3 +391,44 @@ def _replace_param(pdict: nn.ParameterDict, name: str, new_value: torch.Tensor, 
                         optimizer.state[new] = state
                     group["params"][i] = new
     pdict[name] = new
+
+
+# ------------------------------------------------------------------------- bounds
+# Anchors, Gaussian scales and offsets must lie within this multiple of the scene extent (1.1 x
+# the largest distance of a training camera from their mean): SfM points of unbounded scenes
+# reach tens of extents; an anchor at 1e4 extents would already leave HAC's 16-bit positions a
+# step of a third of the scene, so anything beyond is damage, not content.
+SCENE_EXTENT_MULTIPLE = 1e4
+
+
+def check_bounds(model: AnchorModel, where: str, center: torch.Tensor | None = None,
+                 extent: float | None = None) -> None:
+    """Refuse (``ValueError``, one line with the count and the worst value) a model whose
+    anchor positions, activated scales (``exp`` of the log-scales, or a decoded model's values)
+    or offsets (times their scale) are non-finite, or, given the scene's ``center`` [3] and
+    ``extent``, farther than :data:`SCENE_EXTENT_MULTIPLE` x ``extent`` (positions from
+    ``center``, per coordinate). float32, as the model renders them; no per-anchor loop."""
+    n = model.n_anchors
+    if n == 0:
+        return
+    with torch.no_grad():
+        xyz = model.xyz.detach().float().cpu()                              # [N, 3]
+        vals = model.coded_values(torch.arange(n, device=model.xyz.device))
+        scale = vals["scaling"].detach().float().cpu()                      # [N, 6]
+        off = vals["offsets"].detach().float().cpu().view(n, -1, 3) * scale[:, None, :3]
+        c = torch.zeros(3) if center is None else torch.as_tensor(center).float().cpu()
+        checks = (("anchor positions", "from the cameras' centre", (xyz - c).abs().amax(1)),
+                  ("Gaussian scales", "", scale.abs().amax(1)),
+                  ("Gaussian offsets", "from their anchor", off.abs().flatten(1).amax(1)))
+    lim = None if extent is None else SCENE_EXTENT_MULTIPLE * float(extent)
+    for what, rel, d in checks:
+        bad = ~torch.isfinite(d)
+        if lim is not None:
+            bad |= d > lim
+        if bad.any():
+            worst = float(d[bad].max()) if torch.isfinite(d[bad]).all() else float("inf")
+            bound = ("non-finite" if lim is None else
+                     f"non-finite or beyond {SCENE_EXTENT_MULTIPLE:g} x the scene extent "
+                     f"{float(extent):.4g} ({lim:.4g}){' ' + rel if rel else ''}")
+            raise ValueError(f"{where}: {int(bad.sum())} of {n} anchors have {what} {bound}; "
+                             f"the worst is {worst:.4g} (a damaged or foreign model)")

@@ -27,7 +27,13 @@ from tqdm import tqdm
 from baseline import registry
 from baseline.config import Config, to_toml
 from baseline.device import machine_name, make_generator, resolve_device
-from baseline.fileio import atomic_path, write_text_atomic
+from baseline.fileio import (
+    atomic_path,
+    open_checked,
+    read_text_bounded,
+    write_text_atomic,
+)
+from baseline.memory import allocating
 from baseline.pipeline import render_view
 from baseline.scaffold.build import build_entropy, build_model, entropy_param_groups
 from baseline.timing import active as active_timer
@@ -333,7 +339,9 @@ class Trainer:
             while self.iteration < total:
                 it = self.iteration + 1
                 t0, c0 = time.perf_counter(), time.process_time()
-                terms = self.step(it)
+                with allocating(f"training {self.out} at iteration {it} "
+                                f"({self.model.n_anchors} anchors)", device=str(self.device)):
+                    terms = self.step(it)
                 dt = time.perf_counter() - t0
                 self.train_time += dt
                 if self.stall_time is not None:
@@ -381,7 +389,7 @@ class Trainer:
         path = self.out / TRAIN_LOG_NAME
         if path.is_file():
             keep = []
-            for line in path.read_text().splitlines():
+            for line in read_text_bounded(path, "a training log").splitlines():
                 try:
                     if json.loads(line)["it"] <= self.iteration:
                         keep.append(line)
@@ -433,8 +441,10 @@ class Trainer:
 
     def load_checkpoint(self, path: str | Path) -> None:
         path = Path(path)
+        f, _, _ = open_checked(path, "a checkpoint")   # a regular file under PGS_MAX_FILE_MB
         try:
-            s = torch.load(path, map_location="cpu", weights_only=False)
+            with f:
+                s = torch.load(f, map_location="cpu", weights_only=False)
         except Exception as e:
             raise ValueError(f"cannot read checkpoint {path}: {e}") from None
         for k, shape in s["shapes"].items():
@@ -453,6 +463,10 @@ class Trainer:
         check_finite(s["entropy"], path, "entropy model")
         check_optimizer_finite(s["optimizer"], path)
         self.model.load_state_dict(s["model"])
+        from baseline.data.scene import scene_bounds
+        from baseline.scaffold.model import check_bounds
+
+        check_bounds(self.model, f"checkpoint {path}", *scene_bounds(self.scene))
         self.entropy.load_state_dict(s["entropy"])
         self.optimizer = self._make_optimizer()
         self.optimizer.load_state_dict(s["optimizer"])
