@@ -15,8 +15,11 @@ compute corners, weights and hashes in registers:
   buffers) was tried and measured 3.5x slower.
 
 Inside a chunk both run level by level (the level's resolution, kind and offsets stay in
-registers) over straight-line code for the 8 (3D) or 4 (plane) corners: 1.8-2x faster than a
-point-by-point loop over the levels with the corners in scratch arrays, with the same bits
+registers) over straight-line code for the 8 (3D) or 4 (plane) corners, and the backward
+scatters 4-feature rows (HAC's layout) as four named accumulations: on 80k anchors of one
+thread, forward 1.3x (3D grid) to 1.7x (planes) and backward 2x (3D) to 2.8x (planes) the
+speed of a point-by-point loop over the levels with the corners in scratch arrays, with the
+same bits
 (every table row belongs to one level, so each entry still receives its terms in point order,
 then corner order; ``tests/reference_grid_kernels.py`` keeps that loop as the tests' oracle).
 
@@ -279,6 +282,20 @@ def _bwd_range(u, gout, res, rows, offsets, kinds, strides, gtable, start, stop)
                 if wn == 0.0:
                     continue
                 inv = np.float32(1.0) / wn
+                if F == 4:
+                    g0 = gout[i, base]
+                    g1 = gout[i, base + 1]
+                    g2 = gout[i, base + 2]
+                    g3 = gout[i, base + 3]
+                    for c in range(8):
+                        if w[c] != 0.0:
+                            s = w[c] * inv
+                            rr = off + ix[c]
+                            gtable[rr, 0] += s * g0
+                            gtable[rr, 1] += s * g1
+                            gtable[rr, 2] += s * g2
+                            gtable[rr, 3] += s * g3
+                    continue
                 for c in range(8):
                     if w[c] != 0.0:
                         s = w[c] * inv
@@ -293,6 +310,20 @@ def _bwd_range(u, gout, res, rows, offsets, kinds, strides, gtable, start, stop)
                 if wn == 0.0:
                     continue
                 inv = np.float32(1.0) / wn
+                if F == 4:
+                    g0 = gout[i, base]
+                    g1 = gout[i, base + 1]
+                    g2 = gout[i, base + 2]
+                    g3 = gout[i, base + 3]
+                    for c in range(4):
+                        if w[c] != 0.0:
+                            s = w[c] * inv
+                            rr = off + ix[c]
+                            gtable[rr, 0] += s * g0
+                            gtable[rr, 1] += s * g1
+                            gtable[rr, 2] += s * g2
+                            gtable[rr, 3] += s * g3
+                    continue
                 for c in range(4):
                     if w[c] != 0.0:
                         s = w[c] * inv
