@@ -916,7 +916,9 @@ def main(argv=None) -> int:
 
     args = ap.parse_args(argv)
     from baseline import memory, registry
+    from baseline.device import keep_freed_memory
 
+    keep_freed_memory()          # trainings, decodes and renders reuse their freed blocks
     try:
         registry.ensure_loaded()
         return args.fn(args)

@@ -50,3 +50,16 @@ def test_fast_paths_train_the_reference_checkpoint(scene, tmp_path, patches):
     differ = [k for k in a if not (a[k].dtype == b[k].dtype and a[k].shape == b[k].shape
                                    and torch.equal(a[k], b[k]))]
     assert not differ, differ[:10]
+
+
+def test_the_allocator_keeps_freed_memory_once_per_process():
+    """glibc's allocator is told to keep the blocks a step frees (no numbers change: only
+    where memory comes from); where the C library has no mallopt it is a no-op."""
+    import ctypes.util
+
+    from baseline.device import keep_freed_memory
+
+    ok = keep_freed_memory()
+    if ctypes.util.find_library("c") is None:
+        pytest.skip("no C library found")
+    assert ok and keep_freed_memory()

@@ -26,7 +26,7 @@ from tqdm import tqdm
 
 from baseline import registry
 from baseline.config import Config, to_toml
-from baseline.device import machine_name, make_generator, resolve_device
+from baseline.device import keep_freed_memory, machine_name, make_generator, resolve_device
 from baseline.fileio import (
     atomic_path,
     open_checked,
@@ -129,6 +129,7 @@ class Trainer:
         self.out = Path(out_dir)
         self.progress = progress
         self.device = resolve_device(str(device) if device is not None else cfg.train.device)
+        keep_freed_memory()
         self.threads = set_threads(cfg.train.threads)
         # [first iteration, threads] per stretch of training: a run resumed at another thread
         # count trained its iterations at several (its time per iteration mixes them)
