@@ -100,17 +100,23 @@ def _print_results(res: dict) -> None:
 
 
 def cmd_eval(args) -> int:
+    from baseline.eval.evaluate import method_key
     from baseline.eval.metrics import load_lpips
+    from baseline.guard import check_output_folder
     from baseline.run import Renderable, write_json_atomic
 
+    target = Path(args.target)
+    out_dir = target if target.is_dir() else target.with_suffix("")
+    views = out_dir / args.split
+    check_output_folder(views)             # never into a scene, never onto a run's records
     r = Renderable(args.target, args.scene, device=args.device)
     lpips_fn, reason = load_lpips(_lpips_weights(args))
     if lpips_fn is None:
         print(reason, file=sys.stderr)          # stdout stays one JSON document
-    target = Path(args.target)
-    out_dir = target if target.is_dir() else target.with_suffix("")
-    res = r.evaluate(args.split, render_dir=out_dir / "renders" / args.split, lpips_fn=lpips_fn)
+    folder = views / method_key(r.iterations)
+    res = r.evaluate(args.split, render_dir=folder, lpips_fn=lpips_fn)
     res["phase"] = r.phase
+    res["views"] = str(folder)
     if r.phase == "decoded":
         res["bytes"] = target.stat().st_size
         res["decode_s"] = r.decoded.decode_s
@@ -158,16 +164,18 @@ def cmd_curves(args) -> int:
 
 
 def cmd_render(args) -> int:
-    from baseline.run import Renderable
-
+    from baseline.eval.metrics import load_lpips
     from baseline.guard import check_output_folder
+    from baseline.run import Renderable
 
     out = Path(args.output)
     check_output_folder(out)
     r = Renderable(args.target, args.scene, device=args.device)
-    res = r.evaluate(args.split, render_dir=out)
-    print(f"rendered {res['n_views']} {args.split} views to {out} "
-          f"(PSNR {res['psnr']:.3f} dB, FPS {res['fps']:.1f})")
+    lpips_fn, _ = load_lpips(_lpips_weights(args))
+    res = r.evaluate(args.split, render_dir=out, lpips_fn=lpips_fn)
+    print(f"rendered {res['n_views']} {args.split} views to {out / 'renders'} (ground truth in "
+          f"{out / 'gt'}, metrics per view in {out / 'per_view.json'}; PSNR {res['psnr']:.3f} dB, "
+          f"SSIM {res['ssim']:.4f}, FPS {res['fps']:.1f})")
     return 0
 
 
@@ -233,7 +241,12 @@ def cmd_decode(args) -> int:
         if args.render != "none" or center is None:
             r = Renderable(args.file, args.scene, device=args.device, decoded=dec)
         if args.render != "none":
-            res[args.render] = r.evaluate(args.render, render_dir=out / "renders" / args.render)
+            from baseline.eval.evaluate import method_key
+            from baseline.eval.metrics import default_lpips
+
+            res[args.render] = r.evaluate(
+                args.render, render_dir=out / args.render / method_key(r.iterations),
+                lpips_fn=default_lpips()[0])
             t = res[args.render]
             print(f"{args.render}: PSNR {t['psnr']:.3f} dB  SSIM {t['ssim']:.4f}  FPS {t['fps']:.1f}")
             prov = feature_cache(r.model)
@@ -455,19 +468,23 @@ def cmd_demo(args) -> int:
     from baseline.eval.executors import Job, LocalExecutor
     from baseline.train.trainer import available_cores
 
+    from baseline.eval.metrics import find_lpips_weights
+
     out = Path(args.out)
     scene = out / "scene"
     if not (scene / "sparse").exists():
         make_scene(scene)
         print(f"wrote the default synthetic scene to {scene}")
     t0 = time.perf_counter()
+    lpips = find_lpips_weights()            # LPIPS whenever both weight files are here
     lambdas = list(args.lambdas or DEMO_LAMBDAS)
     common = ["demo"] + args.patch
     methods = parse_methods(args.vs or ["predict-gs"])
     ref = None if args.reference == "none" else args.reference
     jobs = [Job(scene=str(scene.resolve()), out=str(out.resolve()), method=s.method.name,
                 method_patches=tuple(s.method.patches), lmbda=s.lmbda, seed=None,
-                common_patches=tuple(common), sets=tuple(args.set), label=s.label)
+                common_patches=tuple(common), sets=tuple(args.set), label=s.label,
+                lpips_weights=lpips)
             for s in plan_runs(out, methods, lambdas, common, args.set)]
     jobs.sort(key=lambda j: j.method == "baseline")          # the longer trainings first
     if ref is not None:
@@ -486,7 +503,8 @@ def cmd_demo(args) -> int:
             return 1
         run_compare(str(scene), out, vs=args.vs or ["predict-gs"], lambdas=lambdas,
                     common_patches=common, sets=args.set, progress=False, plots=True,
-                    reference=ref, paired_fps=True, scope=DEMO_SCOPE)
+                    reference=ref, paired_fps=True, scope=DEMO_SCOPE, lpips_weights=lpips,
+                    done_before={r["run_dir"]: r["stages_run"] for r in res["done"]})
     except KeyboardInterrupt:
         print("\ninterrupted: run ./run.sh demo again to resume", file=sys.stderr)
         return 130
@@ -597,9 +615,11 @@ def main(argv=None) -> int:
     p.add_argument("--device", default=None, help=DEVICE_HELP)
     p.set_defaults(fn=cmd_quant_cost)
 
-    p = sub.add_parser("render", help="render the views of a run folder or a .pgs file to PNG")
+    p = sub.add_parser("render", help="render the views of a run folder or a .pgs file: "
+                       "DIR/renders, DIR/gt (PNG) and DIR/per_view.json, as 3DGS lays them out")
     p.add_argument("target", help="run folder or .pgs file")
-    p.add_argument("-o", "--output", required=True, help="folder for the PNG renders")
+    p.add_argument("-o", "--output", required=True, help="folder for renders/, gt/ and per_view.json")
+    p.add_argument("--lpips-weights", default=None, help=LPIPS_HELP)
     p.add_argument("--split", choices=["test", "train"], default="test", help="the views to use (default test)")
     p.add_argument("--scene", default=None, help="scene path (default: the one recorded)")
     p.add_argument("--device", default=None, help=DEVICE_HELP)

@@ -1,7 +1,8 @@
 """Run folders: train into one, reload it, evaluate it.
 
 A run folder holds ``config.toml`` (the merged config), ``scene.json`` (where the scene is and
-how it was loaded), ``checkpoint.pt``, ``results.json`` and ``renders/``.
+how it was loaded), ``checkpoint.pt``, ``results.json`` and ``test/ours_<iterations>/``
+(``renders/``, ``gt/``, ``per_view.json``: 3DGS's layout, :mod:`baseline.eval.evaluate`).
 """
 from __future__ import annotations
 
@@ -112,8 +113,13 @@ def _finish_run(trainer, scene, scene_path, out: Path, cfg: Config, evaluate_aft
         "versions": versions(),
     }
     if evaluate_after:
-        results["test"] = evaluate_trainer(trainer, scene, render_dir=out / "renders" / "test"
-                                           if cfg.train.save_test_renders else None)
+        from baseline.eval.evaluate import method_key
+        from baseline.eval.metrics import default_lpips
+
+        folder = out / "test" / method_key(trainer.iteration)
+        results["test"] = evaluate_trainer(trainer, scene, render_dir=folder
+                                           if cfg.train.save_test_renders else None,
+                                           lpips_fn=default_lpips()[0])
     write_json_atomic(out / "results.json", results)
     return results
 
@@ -144,7 +150,7 @@ def evaluate_trainer(trainer: Trainer, scene, render_dir: Optional[Path] = None,
     cams = scene.test_cameras or scene.train_cameras
     return evaluate(trainer.model, scene, cams, phase=trainer.phase, entropy=trainer.entropy,
                     backend=trainer.cfg.train.rasterizer, coded=coded_state(trainer),
-                    render_dir=render_dir, lpips_fn=lpips_fn)
+                    render_dir=render_dir, lpips_fn=lpips_fn, iterations=trainer.iteration)
 
 
 def load_run(run_dir: str | Path, progress: bool = False,
@@ -185,6 +191,7 @@ class Renderable:
             dec = decoded if decoded is not None else decode_model(target)
             self.decoded = dec
             self.cfg, self.model, self.phase = dec.cfg, dec.model, "decoded"
+            self.iterations = dec.cfg.train.iterations      # what the file's model trained for
             self.model.to(resolve_device(device or self.cfg.train.device))
             self.model.bake_if_faster()
             scene_path = scene_override or dec.header.get("scene")
@@ -199,6 +206,7 @@ class Renderable:
             trainer, scene = load_run(target, device=device)
             self.trainer = trainer
             self.cfg, self.model, self.phase = trainer.cfg, trainer.model, trainer.phase
+            self.iterations = trainer.iteration
             self.entropy = trainer.entropy
             self.coded = coded_state(trainer)
             scene_path = scene_override or json.loads((target / "scene.json").read_text())["path"]
@@ -208,11 +216,28 @@ class Renderable:
             self.scene = load_scene_for(self.cfg, scene_path)
         self.scene_path = scene_path
 
+    def cameras(self, split: str = "test") -> list:
+        """The views of ``split`` (the training views when the scene holds no test view)."""
+        cams = self.scene.test_cameras if split == "test" else self.scene.train_cameras
+        return cams or self.scene.train_cameras
+
+    def render(self, cam):
+        """One view [H, W, 3] float in [0, 1], rendered exactly as :meth:`evaluate` renders it
+        (the decoded model, or a run's coded state in HAC's adaptive phase)."""
+        from baseline.pipeline import render_view
+
+        bg = self.scene.background.float().to(self.model.xyz.device)
+        with torch.no_grad():
+            return render_view(self.model, cam, bg, phase=self.phase, training=False,
+                               entropy=self.entropy, backend=self.cfg.train.rasterizer,
+                               coded=self.coded).render.image
+
     def evaluate(self, split: str = "test", render_dir: Optional[Path] = None, lpips_fn=None) -> dict:
+        """Metrics and FPS on ``split``; ``render_dir``: also ``renders/``, ``gt/`` and
+        ``per_view.json`` there (3DGS's ``test/ours_<iterations>`` layout)."""
         from baseline.eval.evaluate import evaluate
 
-        cams = self.scene.test_cameras if split == "test" else self.scene.train_cameras
-        cams = cams or self.scene.train_cameras
-        return evaluate(self.model, self.scene, cams, phase=self.phase, entropy=self.entropy,
-                        backend=self.cfg.train.rasterizer, coded=self.coded,
-                        render_dir=render_dir, lpips_fn=lpips_fn)
+        return evaluate(self.model, self.scene, self.cameras(split), phase=self.phase,
+                        entropy=self.entropy, backend=self.cfg.train.rasterizer,
+                        coded=self.coded, render_dir=render_dir, lpips_fn=lpips_fn,
+                        iterations=self.iterations)
