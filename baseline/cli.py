@@ -36,6 +36,8 @@ def _config_sets(args) -> list:
         sets.append(f"train.iterations={args.iterations}")
     if getattr(args, "device", None):
         sets.append(f'train.device="{args.device}"')
+    if getattr(args, "tensorboard", False):
+        sets.append("train.tensorboard=true")
     return sets
 
 
@@ -62,22 +64,10 @@ def cmd_make_scene(args) -> int:
 
 
 def cmd_train(args) -> int:
-    from baseline.run import train_run
-
-    from baseline.data.readers import detect_format
-    from baseline.guard import RUN_FILES, RunLock, check_output_folder
+    from baseline.run import prepare_run_folder, train_run
 
     cfg = _build_cfg(args)
-    detect_format(Path(args.scene))        # a wrong scene path leaves no output folder behind
-    out = Path(args.out)
-    check_output_folder(out, may_be_run=args.resume, overwrite=args.overwrite)
-    if args.resume and not (out / "checkpoint.pt").is_file():
-        raise ValueError(f"--resume: {out} holds no run to resume (no checkpoint.pt); leave "
-                         f"--resume out to start one")
-    if args.overwrite and not args.resume and out.is_dir():
-        with RunLock(out):                 # not while another process trains there
-            for name in RUN_FILES:
-                (out / name).unlink(missing_ok=True)
+    prepare_run_folder(args.scene, args.out, resume=args.resume, overwrite=args.overwrite)
     res = train_run(args.scene, args.out, cfg, resume=args.resume,
                     progress=not args.no_progress)
     _print_results(res)
@@ -179,39 +169,38 @@ def cmd_render(args) -> int:
     return 0
 
 
+def cmd_view(args) -> int:
+    """A web viewer of the decoded model: every frame rendered by the toolkit for the
+    browser's camera (baseline/viewer.py)."""
+    from baseline.viewer import serve
+
+    v = serve(args.target, scene=args.scene, host=args.host, port=args.port, device=args.device)
+    print(f"viewer of {args.target}: {v.url} (training cameras grey, test cameras orange; "
+          f"Ctrl+C to stop)", flush=True)
+    try:
+        while True:
+            time.sleep(3600)
+    except KeyboardInterrupt:
+        v.stop()
+        print("viewer stopped")
+        return 0
+
+
 def cmd_encode(args) -> int:
-    from baseline.codec.model_codec import encode_model, file_info, format_info, format_rate_check, rate_check
-    from baseline.run import file_header, load_run, write_json_atomic
+    from baseline.codec.model_codec import file_info, format_info, format_rate_check, rate_check
+    from baseline.run import encode_run
 
-    from baseline.guard import check_output_file
-
-    check_output_file(args.output, overwrite=args.overwrite)
-    trainer, scene = load_run(args.run, device="cpu")       # the codec runs on the CPU
+    codec = {"weight_dtype": args.weights, "positions": args.positions, "masks": args.masks,
+             "grids": args.grids}
+    st, trainer = encode_run(args.run, args.output, overwrite=args.overwrite, codec=codec)
     if trainer.phase != "adaptive":
         print(f"note: {args.run} stopped before the entropy model was trained (phase "
               f"'{trainer.phase}'); the file is coded with an untrained context model")
-    scene_path = json.loads((Path(args.run) / "scene.json").read_text())["path"]
-    cfg = trainer.cfg
-    codec_over = {k: v for k, v in (("weight_dtype", args.weights), ("positions", args.positions),
-                                    ("masks", args.masks), ("grids", args.grids))
-                  if v and v != getattr(cfg.codec, k)}
-    if codec_over:              # a file of the run coded differently: not recorded with the run
-        import dataclasses
-
-        cfg = dataclasses.replace(cfg, codec=dataclasses.replace(cfg.codec, **codec_over))
-    st = encode_model(cfg, trainer.model, trainer.entropy, args.output,
-                      extra_header=file_header(scene, scene_path))
     print(format_info(file_info(args.output)))
     print(f"wrote {args.output}: {st['bytes']} bytes ({st['bytes'] / 2**20:.4f} MB), "
           f"{st['anchors']} anchors, encode {st['encode_s']:.2f} s")
     if args.rate_check:
         print(format_rate_check(rate_check(trainer.model, trainer.entropy, st)))
-    path = Path(args.run) / "results.json"
-    full = json.loads(path.read_text()) if path.exists() else {}
-    if cfg is trainer.cfg:  # the run's own configuration: record it with the run
-        full["encode"] = {"file": str(args.output), "bytes": st["bytes"], "encode_s": st["encode_s"],
-                          "anchors": st["anchors"], "sections": st["sections"]}
-        write_json_atomic(path, full)
     return 0
 
 
@@ -577,6 +566,10 @@ def main(argv=None) -> int:
                    help="start over in a folder that holds a run (its records are removed)")
     p.add_argument("--no-progress", action="store_true",
                    help="no progress bars (follow OUT/train_log.jsonl instead)")
+    p.add_argument("--tensorboard", action="store_true",
+                   help="also log loss, PSNR, bits per anchor, anchors, Gaussians and learning "
+                        "rates to TensorBoard in OUT/tb/ (train.tensorboard; needs the "
+                        "tensorboard package: pip install -e .[tensorboard])")
     _config_args(p)
     p.set_defaults(fn=cmd_train)
 
@@ -624,6 +617,18 @@ def main(argv=None) -> int:
     p.add_argument("--scene", default=None, help="scene path (default: the one recorded)")
     p.add_argument("--device", default=None, help=DEVICE_HELP)
     p.set_defaults(fn=cmd_render)
+
+    p = sub.add_parser("view", help="a web viewer of a decoded model (or a run): the browser's "
+                       "camera rendered by the toolkit, the training and test cameras as "
+                       "frustums (needs the viewer extra)")
+    p.add_argument("target", help=".pgs file or run folder")
+    p.add_argument("--scene", default=None, help="scene path (default: the one recorded)")
+    p.add_argument("--port", type=int, default=8080, help="port (default 8080)")
+    p.add_argument("--host", default="0.0.0.0",
+                   help="address to listen on (default 0.0.0.0: every interface; 127.0.0.1: "
+                        "this machine only)")
+    p.add_argument("--device", default=None, help=DEVICE_HELP)
+    p.set_defaults(fn=cmd_view)
 
     p = sub.add_parser("encode", help="compress a trained run into one .pgs file")
     p.add_argument("run", help="run folder (trained)")

@@ -58,6 +58,63 @@ def versions() -> dict:
     return v
 
 
+def prepare_run_folder(scene_path: str | Path, out: str | Path, *, resume: bool = False,
+                       overwrite: bool = False) -> Path:
+    """Check that a training may write ``out`` before anything is written (``pgs train`` and
+    :func:`baseline.api.train`): the scene is readable (a wrong path leaves no folder behind),
+    ``out`` is no scene and holds no run unless ``resume`` (which needs its checkpoint) or
+    ``overwrite`` (which removes the run's records, under its lock: never while another process
+    trains there)."""
+    from baseline.data.readers import detect_format
+    from baseline.guard import RUN_FILES, RunLock, check_output_folder
+
+    detect_format(Path(scene_path))
+    out = Path(out)
+    check_output_folder(out, may_be_run=resume, overwrite=overwrite)
+    if resume and not (out / CHECKPOINT_NAME).is_file():
+        raise ValueError(f"--resume: {out} holds no run to resume (no {CHECKPOINT_NAME}); leave "
+                         f"--resume out to start one")
+    if overwrite and not resume and out.is_dir():
+        with RunLock(out):
+            for name in RUN_FILES:
+                (out / name).unlink(missing_ok=True)
+    return out
+
+
+def encode_run(run_dir: str | Path, output: str | Path, *, overwrite: bool = False,
+               codec: Optional[dict] = None, trainer=None) -> tuple[dict, Trainer]:
+    """Encode a trained run to ``output`` (``pgs encode`` and :func:`baseline.api.encode`):
+    the output may not replace a run's records (unless ``overwrite``) nor lie in a scene; the
+    file names its scene (:func:`file_header`); ``codec``: codec settings other than the run's
+    (``{"positions": "sorted", ...}``), a file the run's record does not keep. Returns the
+    encoder's stats and the run's trainer (loaded on the CPU, where the codec runs)."""
+    import dataclasses
+
+    from baseline.codec.model_codec import encode_model
+    from baseline.guard import check_output_file
+
+    check_output_file(output, overwrite=overwrite)
+    run_dir = Path(run_dir)
+    if trainer is None:
+        trainer, scene = load_run(run_dir, device="cpu")
+    else:
+        scene = trainer.scene
+    scene_path = json.loads((run_dir / "scene.json").read_text())["path"]
+    cfg = trainer.cfg
+    over = {k: v for k, v in (codec or {}).items() if v and v != getattr(cfg.codec, k)}
+    if over:
+        cfg = dataclasses.replace(cfg, codec=dataclasses.replace(cfg.codec, **over))
+    st = encode_model(cfg, trainer.model, trainer.entropy, output,
+                      extra_header=file_header(scene, scene_path))
+    if not over:            # the run's own configuration: record it with the run
+        path = run_dir / "results.json"
+        full = json.loads(path.read_text()) if path.exists() else {}
+        full["encode"] = {"file": str(output), "bytes": st["bytes"], "encode_s": st["encode_s"],
+                          "anchors": st["anchors"], "sections": st["sections"]}
+        write_json_atomic(path, full)
+    return st, trainer
+
+
 def train_run(scene_path: str, out: str | Path, cfg: Config, resume: bool = False,
               progress: bool = True, evaluate_after: bool = True) -> dict:
     """Train (or resume) a run in ``out`` and evaluate it on the test views."""
