@@ -16,14 +16,14 @@ holds a run needs ``resume`` or ``overwrite``, and bad input raises ``ValueError
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 
 from baseline.run import Renderable
 
-__all__ = ["train", "encode", "decode", "render", "evaluate"]
+__all__ = ["decode", "encode", "evaluate", "render", "train"]
 
 
 def train(scene: str | Path, out: str | Path, patches: Sequence[str] = (),

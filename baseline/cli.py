@@ -172,9 +172,17 @@ def cmd_render(args) -> int:
 def cmd_view(args) -> int:
     """A web viewer of the decoded model: every frame rendered by the toolkit for the
     browser's camera (baseline/viewer.py)."""
+    import signal
+
     from baseline.viewer import serve
 
+    def stop(*_):
+        raise KeyboardInterrupt
+
     v = serve(args.target, scene=args.scene, host=args.host, port=args.port, device=args.device)
+    # a service manager's stop is Ctrl+C's (set after the scene is read: pycolmap's logging
+    # installs a SIGTERM handler of its own when it loads)
+    signal.signal(signal.SIGTERM, stop)
     print(f"viewer of {args.target}: {v.url} (training cameras grey, test cameras orange; "
           f"Ctrl+C to stop)", flush=True)
     try:

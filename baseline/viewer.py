@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import Optional
 
 import numpy as np
 import torch
@@ -103,21 +102,24 @@ class ModelViewer:
         c2w = [camera_to_world(c) for c in cams]
         centers = np.array([m[:3, 3] for m in c2w]) if cams else np.zeros((1, 3))
         extent = float(np.linalg.norm(centers - centers.mean(0), axis=1).max()) if cams else 1.0
+        scale = 0.05 * max(extent, 1e-3)       # frustums a twentieth of the camera spread
         for split, group, color in (("train", scene.train_cameras, TRAIN_COLOR),
                                     ("test", scene.test_cameras, TEST_COLOR)):
             for i, c in enumerate(group):
                 m = camera_to_world(c)
                 self.server.scene.add_camera_frustum(
                     f"/cameras/{split}/{i:04d}", fov=2.0 * math.atan(c.height / (2.0 * c.fy)),
-                    aspect=c.width / c.height, scale=0.05 * max(extent, 1e-3), color=color,
-                    wxyz=vt.SO3.from_matrix(m[:3, :3]).wxyz, position=m[:3, 3])
+                    aspect=c.width / c.height, scale=scale, thickness=0.02 * scale,
+                    color=color, wxyz=vt.SO3.from_matrix(m[:3, :3]).wxyz, position=m[:3, 3])
         if cams:
             # the scene's up: the mean of the cameras' up vectors (OpenCV: -y)
             up = -np.mean([m[:3, 1] for m in c2w], axis=0)
             up = up / max(np.linalg.norm(up), 1e-12)
             self.server.scene.set_up_direction(tuple(float(x) for x in up))
+            # start just behind the first training camera, looking where it looks
             first = c2w[0]
-            self.server.initial_camera.position = tuple(float(x) for x in first[:3, 3])
+            eye = first[:3, 3] - first[:3, 2] * 0.1 * max(extent, 1e-3)
+            self.server.initial_camera.position = tuple(float(x) for x in eye)
             self.server.initial_camera.look_at = tuple(
                 float(x) for x in first[:3, 3] + first[:3, 2] * max(extent, 1e-3))
             self.server.initial_camera.up = tuple(float(x) for x in up)
@@ -142,8 +144,8 @@ class ModelViewer:
             self.server = None
 
 
-def serve(target: str | Path, scene: Optional[str] = None, host: str = "0.0.0.0",
-          port: int = 8080, device: Optional[str] = None) -> ModelViewer:
+def serve(target: str | Path, scene: str | None = None, host: str = "0.0.0.0",
+          port: int = 8080, device: str | None = None) -> ModelViewer:
     """Load ``target`` (a ``.pgs`` file or a run folder) and start its viewer."""
     from baseline.run import Renderable
 

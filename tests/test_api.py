@@ -27,7 +27,7 @@ def trained(scene_maker, tmp_path_factory):
 
 
 def test_five_calls_train_encode_decode_render_evaluate(trained):
-    d, scene, run = trained
+    d, _, run = trained
     res = json.loads((run / "results.json").read_text())
     assert res["iterations"] == ITERS and res["test"]["ssim_convention"] == "3dgs"
     assert (run / "test" / f"ours_{ITERS}" / "per_view.json").is_file()
@@ -72,7 +72,7 @@ def test_the_api_has_the_command_lines_guards(trained):
 def test_tensorboard_logs_the_training_curves_outside_the_runs_identity(trained):
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
-    d, scene, run = trained
+    _, _, run = trained
     ea = EventAccumulator(str(run / "tb"))
     ea.Reload()
     tags = set(ea.Tags()["scalars"])

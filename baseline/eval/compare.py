@@ -887,7 +887,7 @@ def run_compare(scene: str | Path, out: str | Path, vs: list[str] = (),
     for name, why in untimed or ():
         mark_untimed(specs, name, why, lp_id, codec_over)
     finished = [is_finished(s, lp_id, codec_over) for s in specs]   # reads each run's records once
-    earlier = {str(Path(k).resolve()): list(v) for k, v in (done_before or {}).items()}
+    earlier = {str(Path(k).resolve()): list(v) for k, v in (done_before or {}).items() if v}
     # runs this command brought to the end elsewhere are no runs that had finished before it
     n_done = 0 if remeasure else sum(f and str(s.dir.resolve()) not in earlier
                                      for s, f in zip(specs, finished))
