@@ -17,7 +17,8 @@ comparison picks up where it stopped:
 3. **decoded** -- ``decode_model`` the file alone and evaluate the *decoded* model on the test
    views (PSNR / SSIM / LPIPS on uint8 images, FPS); models whose feature provider keeps a
    decoded-model cache (``build_cache`` / ``clear_cache``, Predict-GS's SFP) are timed with and
-   without it. Done when ``compare.json`` holds these (with LPIPS if weights are given now).
+   without it. Done when ``compare.json`` holds these (with LPIPS if weights are given now);
+   the views are in ``RUN/decoded/`` (``renders/``, ``gt/``, ``per_view.json``: 3DGS's layout).
 
 A run folder reduced to its records (``config.toml``, ``scene.json``, ``results.json``,
 ``compare.json``: no checkpoint, no model file) counts as finished and is reported from them, so
