@@ -36,6 +36,8 @@ def _config_sets(args) -> list:
         sets.append(f"train.iterations={args.iterations}")
     if getattr(args, "device", None):
         sets.append(f'train.device="{args.device}"')
+    if getattr(args, "tensorboard", False):
+        sets.append("train.tensorboard=true")
     return sets
 
 
@@ -62,24 +64,10 @@ def cmd_make_scene(args) -> int:
 
 
 def cmd_train(args) -> int:
-    from baseline.data.readers import detect_format
-    from baseline.guard import RUN_FILES, RunLock, check_output
-    from baseline.run import train_run
+    from baseline.run import prepare_run_folder, train_run
 
     cfg = _build_cfg(args)
-    detect_format(Path(args.scene))        # a wrong scene path leaves no output folder behind
-    out = Path(args.out)
-    # a new or empty folder, a run of this scene (started, or with --resume finished), or with
-    # --overwrite any run or toolkit output; never a folder of the user's files
-    check_output(out, command="train", source=args.scene, folder=True, overwrite=args.overwrite,
-                 may_be_run=args.resume or args.overwrite)
-    if args.resume and not (out / "checkpoint.pt").is_file():
-        raise ValueError(f"--resume: {out} holds no run to resume (no checkpoint.pt); leave "
-                         f"--resume out to start one")
-    if args.overwrite and not args.resume and out.is_dir():
-        with RunLock(out):                 # not while another process trains there
-            for name in RUN_FILES:
-                (out / name).unlink(missing_ok=True)
+    prepare_run_folder(args.scene, args.out, resume=args.resume, overwrite=args.overwrite)
     res = train_run(args.scene, args.out, cfg, resume=args.resume,
                     progress=not args.no_progress)
     _print_results(res)
@@ -103,6 +91,7 @@ def _print_results(res: dict) -> None:
 
 
 def cmd_eval(args) -> int:
+    from baseline.eval.evaluate import method_key
     from baseline.eval.metrics import load_lpips
     from baseline.guard import check_output, write_marker
     from baseline.run import Renderable, write_json_atomic
@@ -110,20 +99,22 @@ def cmd_eval(args) -> int:
     target = Path(args.target)
     out_dir = target if target.is_dir() else target.with_suffix("")
     path = (target / "results.json") if target.is_dir() else target.with_suffix(".results.json")
-    render_dir = out_dir / "renders" / args.split
+    views = out_dir / args.split
     if not target.is_dir():          # beside a .pgs file: in decode's folder, its own record
         check_output(out_dir, command="eval", source=target, folder=True, shares=("decode",))
         check_output(path, command="eval", source=target, own=_is_eval_record)
-    check_output(render_dir, command="eval", source=target, folder=True)
+    check_output(views, command="eval", source=target, folder=True, shares=("decode",))
     r = Renderable(args.target, args.scene, device=args.device)
     lpips_fn, reason = load_lpips(_lpips_weights(args))
     if lpips_fn is None:
         print(reason, file=sys.stderr)          # stdout stays one JSON document
     if not target.is_dir() and not out_dir.exists():
         write_marker(out_dir, "eval", target)
-    res = r.evaluate(args.split, render_dir=render_dir, lpips_fn=lpips_fn)
-    write_marker(render_dir, "eval", target)
+    folder = views / method_key(r.iterations)
+    res = r.evaluate(args.split, render_dir=folder, lpips_fn=lpips_fn)
+    write_marker(views, "eval", target)
     res["phase"] = r.phase
+    res["views"] = str(folder)
     if r.phase == "decoded":
         res["bytes"] = target.stat().st_size
         res["decode_s"] = r.decoded.decode_s
@@ -205,6 +196,7 @@ def cmd_curves(args) -> int:
 
 
 def cmd_render(args) -> int:
+    from baseline.eval.metrics import format_psnr, load_lpips
     from baseline.guard import check_output, write_marker
     from baseline.run import Renderable
 
@@ -213,65 +205,54 @@ def cmd_render(args) -> int:
                  overwrite=args.overwrite)
     r = Renderable(args.target, args.scene, device=args.device)
     write_marker(out, "render", args.target)
-    res = r.evaluate(args.split, render_dir=out)
-    from baseline.eval.metrics import format_psnr
-
-    print(f"rendered {res['n_views']} {args.split} views to {out} "
-          f"(PSNR {format_psnr(res['psnr'], 3)}, FPS {res['fps']:.1f})")
+    lpips_fn, _ = load_lpips(_lpips_weights(args))
+    res = r.evaluate(args.split, render_dir=out, lpips_fn=lpips_fn)
+    print(f"rendered {res['n_views']} {args.split} views to {out / 'renders'} (ground truth in "
+          f"{out / 'gt'}, metrics per view in {out / 'per_view.json'}; PSNR "
+          f"{format_psnr(res['psnr'], 3)}, SSIM {res['ssim']:.4f}, FPS {res['fps']:.1f})")
     return 0
 
 
+def cmd_view(args) -> int:
+    """A web viewer of the decoded model: every frame rendered by the toolkit for the
+    browser's camera (baseline/viewer.py)."""
+    import signal
+
+    from baseline.viewer import serve
+
+    def stop(*_):
+        raise KeyboardInterrupt
+
+    v = serve(args.target, scene=args.scene, host=args.host, port=args.port, device=args.device)
+    # a service manager's stop is Ctrl+C's (set after the scene is read: pycolmap's logging
+    # installs a SIGTERM handler of its own when it loads)
+    signal.signal(signal.SIGTERM, stop)
+    print(f"viewer of {args.target}: {v.url} (training cameras grey, test cameras orange; "
+          f"Ctrl+C to stop)", flush=True)
+    try:
+        while True:
+            time.sleep(3600)
+    except KeyboardInterrupt:
+        v.stop()
+        print("viewer stopped")
+        return 0
+
+
 def cmd_encode(args) -> int:
-    from baseline.codec.model_codec import (
-        encode_model,
-        file_info,
-        format_info,
-        format_rate_check,
-        rate_check,
-    )
-    from baseline.guard import check_output
-    from baseline.run import file_header, load_run, write_json_atomic
+    from baseline.codec.model_codec import file_info, format_info, format_rate_check, rate_check
+    from baseline.run import encode_run
 
-    record = Path(args.run) / "results.json"
-
-    def own(path):               # the file this run's record says it encoded there
-        try:
-            enc = _read_record(record).get("encode") or {}
-        except ValueError:
-            return False
-        return (isinstance(enc.get("file"), str) and Path(enc["file"]).resolve() == path.resolve()
-                and path.read_bytes()[:4] == b"PGS\x00")
-
-    check_output(args.output, command="encode", source=args.run, overwrite=args.overwrite,
-                 own=own)
-    trainer, scene = load_run(args.run, device="cpu")       # the codec runs on the CPU
+    codec = {"weight_dtype": args.weights, "positions": args.positions, "masks": args.masks,
+             "grids": args.grids}
+    st, trainer = encode_run(args.run, args.output, overwrite=args.overwrite, codec=codec)
     if trainer.phase != "adaptive":
         print(f"note: {args.run} stopped before the entropy model was trained (phase "
               f"'{trainer.phase}'); the file is coded with an untrained context model")
-    scene_path = _read_record(Path(args.run) / "scene.json")["path"]
-    cfg = trainer.cfg
-    codec_over = {k: v for k, v in (("weight_dtype", args.weights), ("positions", args.positions),
-                                    ("masks", args.masks), ("grids", args.grids))
-                  if v and v != getattr(cfg.codec, k)}
-    if codec_over:              # a file of the run coded differently: not recorded with the run
-        import dataclasses
-
-        cfg = dataclasses.replace(cfg, codec=dataclasses.replace(cfg.codec, **codec_over))
-    from baseline.data.scene import scene_bounds
-
-    st = encode_model(cfg, trainer.model, trainer.entropy, args.output,
-                      extra_header=file_header(scene, scene_path), scene_bounds=scene_bounds(scene))
     print(format_info(file_info(args.output)))
     print(f"wrote {args.output}: {st['bytes']} bytes ({st['bytes'] / 2**20:.4f} MB), "
           f"{st['anchors']} anchors, encode {st['encode_s']:.2f} s")
     if args.rate_check:
         print(format_rate_check(rate_check(trainer.model, trainer.entropy, st)))
-    path = Path(args.run) / "results.json"
-    full = _read_record(path) if path.exists() else {}
-    if cfg is trainer.cfg:  # the run's own configuration: record it with the run
-        full["encode"] = {"file": str(args.output), "bytes": st["bytes"], "encode_s": st["encode_s"],
-                          "anchors": st["anchors"], "sections": st["sections"]}
-        write_json_atomic(path, full)
     return 0
 
 
@@ -313,7 +294,12 @@ def cmd_decode(args) -> int:
         if args.render != "none" or center is None:
             r = Renderable(args.file, args.scene, device=args.device, decoded=dec)
         if args.render != "none":
-            res[args.render] = r.evaluate(args.render, render_dir=out / "renders" / args.render)
+            from baseline.eval.evaluate import method_key
+            from baseline.eval.metrics import default_lpips
+
+            res[args.render] = r.evaluate(
+                args.render, render_dir=out / args.render / method_key(r.iterations),
+                lpips_fn=default_lpips()[0])
             t = res[args.render]
             print(f"{args.render}: PSNR {format_psnr(t['psnr'], 3)}  SSIM {t['ssim']:.4f}  "
                   f"FPS {t['fps']:.1f}")
@@ -566,6 +552,8 @@ def cmd_demo(args) -> int:
     from baseline.guard import check_output, write_marker
     from baseline.train.trainer import available_cores
 
+    from baseline.eval.metrics import find_lpips_weights
+
     out = Path(args.out)
     scene = out / "scene"
     # the demo is a comparison on its own scene: new, empty, or an earlier demo (to resume)
@@ -576,13 +564,15 @@ def cmd_demo(args) -> int:
         make_scene(scene)
         print(f"wrote the default synthetic scene to {scene}")
     t0 = time.perf_counter()
+    lpips = find_lpips_weights()            # LPIPS whenever both weight files are here
     lambdas = list(args.lambdas or DEMO_LAMBDAS)
     common = ["demo"] + args.patch
     methods = parse_methods(args.vs or ["predict-gs"])
     ref = None if args.reference == "none" else args.reference
     jobs = [Job(scene=str(scene.resolve()), out=str(out.resolve()), method=s.method.name,
                 method_patches=tuple(s.method.patches), lmbda=s.lmbda, seed=None,
-                common_patches=tuple(common), sets=tuple(args.set), label=s.label)
+                common_patches=tuple(common), sets=tuple(args.set), label=s.label,
+                lpips_weights=lpips)
             for s in plan_runs(out, methods, lambdas, common, args.set)]
     jobs.sort(key=lambda j: j.method == "baseline")          # the longer trainings first
     if ref is not None:
@@ -601,7 +591,8 @@ def cmd_demo(args) -> int:
             return 1
         run_compare(str(scene), out, vs=args.vs or ["predict-gs"], lambdas=lambdas,
                     common_patches=common, sets=args.set, progress=False, plots=True,
-                    reference=ref, paired_fps=True, scope=DEMO_SCOPE)
+                    reference=ref, paired_fps=True, scope=DEMO_SCOPE, lpips_weights=lpips,
+                    done_before={r["run_dir"]: r["stages_run"] for r in res["done"]})
     except KeyboardInterrupt:
         print("\ninterrupted: run ./run.sh demo again to resume", file=sys.stderr)
         return 130
@@ -677,6 +668,10 @@ def main(argv=None) -> int:
                    help="start over in a folder that holds a run (its records are removed)")
     p.add_argument("--no-progress", action="store_true",
                    help="no progress bars (follow OUT/train_log.jsonl instead)")
+    p.add_argument("--tensorboard", action="store_true",
+                   help="also log loss, PSNR, bits per anchor, anchors, Gaussians and learning "
+                        "rates to TensorBoard in OUT/tb/ (train.tensorboard; needs the "
+                        "tensorboard package: pip install -e .[tensorboard])")
     _config_args(p)
     p.set_defaults(fn=cmd_train)
 
@@ -717,15 +712,29 @@ def main(argv=None) -> int:
     p.add_argument("--device", default=None, help=DEVICE_HELP)
     p.set_defaults(fn=cmd_quant_cost)
 
-    p = sub.add_parser("render", help="render the views of a run folder or a .pgs file to PNG")
+    p = sub.add_parser("render", help="render the views of a run folder or a .pgs file: "
+                       "DIR/renders, DIR/gt (PNG) and DIR/per_view.json, as 3DGS lays them out")
     p.add_argument("target", help="run folder or .pgs file")
-    p.add_argument("-o", "--output", required=True, help="folder for the PNG renders")
+    p.add_argument("-o", "--output", required=True, help="folder for renders/, gt/ and per_view.json")
     p.add_argument("--overwrite", action="store_true",
                    help="write into a folder holding another output of pgs")
+    p.add_argument("--lpips-weights", default=None, help=LPIPS_HELP)
     p.add_argument("--split", choices=["test", "train"], default="test", help="the views to use (default test)")
     p.add_argument("--scene", default=None, help="scene path (default: the one recorded)")
     p.add_argument("--device", default=None, help=DEVICE_HELP)
     p.set_defaults(fn=cmd_render)
+
+    p = sub.add_parser("view", help="a web viewer of a decoded model (or a run): the browser's "
+                       "camera rendered by the toolkit, the training and test cameras as "
+                       "frustums (needs the viewer extra)")
+    p.add_argument("target", help=".pgs file or run folder")
+    p.add_argument("--scene", default=None, help="scene path (default: the one recorded)")
+    p.add_argument("--port", type=int, default=8080, help="port (default 8080)")
+    p.add_argument("--host", default="0.0.0.0",
+                   help="address to listen on (default 0.0.0.0: every interface; 127.0.0.1: "
+                        "this machine only)")
+    p.add_argument("--device", default=None, help=DEVICE_HELP)
+    p.set_defaults(fn=cmd_view)
 
     p = sub.add_parser("encode", help="compress a trained run into one .pgs file")
     p.add_argument("run", help="run folder (trained)")

@@ -132,6 +132,9 @@ class TrainConfig:
     checkpoint_every: int = 5000         # paper-scale iterations; 0 = only at the end
     log_every: int = 10
     save_test_renders: bool = True
+    # also log the training curves to TensorBoard in RUN/tb/ (the optional tensorboard package:
+    # pip install -e .[tensorboard]); logging only, so not part of a run's identity (hash)
+    tensorboard: bool = False
 
     def at(self, paper_iteration: int) -> int:
         """Milestone ``paper_iteration`` (given for ``schedule_base`` iterations) scaled to this run."""
@@ -529,10 +532,11 @@ def semantics_note(version) -> str:
     return f"{v} ({TRAINING_SEMANTICS_NOTES.get(v, 'unknown to this code')})"
 
 
-# Where a run executes, not what it computes: left out of the config hash, so the same settings
-# trained on the CPU or on a GPU are one run (each run records its device and rasterizer backend
-# in results.json, and reports print them in their protocol).
-EXECUTION_KEYS = (("train", "device"),)
+# Where a run executes and what it logs, not what it computes: left out of the config hash, so
+# the same settings trained on the CPU or on a GPU, with or without a TensorBoard log, are one
+# run (each run records its device and rasterizer backend in results.json, and reports print
+# them in their protocol).
+EXECUTION_KEYS = (("train", "device"), ("train", "tensorboard"))
 
 
 # Options added after runs were finished and archived, with the default that reproduces those

@@ -1,7 +1,8 @@
 """Run folders: train into one, reload it, evaluate it.
 
 A run folder holds ``config.toml`` (the merged config), ``scene.json`` (where the scene is and
-how it was loaded), ``checkpoint.pt``, ``results.json`` and ``renders/``.
+how it was loaded), ``checkpoint.pt``, ``results.json`` and ``test/ours_<iterations>/``
+(``renders/``, ``gt/``, ``per_view.json``: 3DGS's layout, :mod:`baseline.eval.evaluate`).
 """
 from __future__ import annotations
 
@@ -55,6 +56,78 @@ def versions() -> dict:
 
     v["pgs"] = baseline.__version__
     return v
+
+
+def prepare_run_folder(scene_path: str | Path, out: str | Path, *, resume: bool = False,
+                       overwrite: bool = False) -> Path:
+    """Check that a training may write ``out`` before anything is written (``pgs train`` and
+    :func:`baseline.api.train`): the scene is readable (a wrong path leaves no folder behind);
+    ``out`` is new, empty, a run of this scene (started, or with ``resume`` finished; resuming
+    needs its checkpoint) or with ``overwrite`` any run or toolkit output, whose run records are
+    removed under its lock (never while another process trains there); never a folder of the
+    user's files (:func:`baseline.guard.check_output`)."""
+    from baseline.data.readers import detect_format
+    from baseline.guard import RUN_FILES, RunLock, check_output
+
+    detect_format(Path(scene_path))
+    out = Path(out)
+    check_output(out, command="train", source=scene_path, folder=True, overwrite=overwrite,
+                 may_be_run=resume or overwrite)
+    if resume and not (out / CHECKPOINT_NAME).is_file():
+        raise ValueError(f"--resume: {out} holds no run to resume (no {CHECKPOINT_NAME}); leave "
+                         f"--resume out to start one")
+    if overwrite and not resume and out.is_dir():
+        with RunLock(out):
+            for name in RUN_FILES:
+                (out / name).unlink(missing_ok=True)
+    return out
+
+
+def encode_run(run_dir: str | Path, output: str | Path, *, overwrite: bool = False,
+               codec: Optional[dict] = None, trainer=None) -> tuple[dict, Trainer]:
+    """Encode a trained run to ``output`` (``pgs encode`` and :func:`baseline.api.encode`):
+    ``output`` is new, this run's own earlier file (the one its record names), or with
+    ``overwrite`` any file (:func:`baseline.guard.check_output`); the file names its scene
+    (:func:`file_header`), and anchors far outside the scene are refused; ``codec``: codec
+    settings other than the run's (``{"positions": "sorted", ...}``), a file the run's record
+    does not keep. Returns the encoder's stats and the run's trainer (loaded on the CPU, where
+    the codec runs)."""
+    import dataclasses
+
+    from baseline.codec.model_codec import encode_model
+    from baseline.data.scene import scene_bounds
+    from baseline.fileio import read_json_bounded
+    from baseline.guard import check_output
+
+    run_dir = Path(run_dir)
+    record = run_dir / "results.json"
+
+    def own(path):               # the file this run's record says it encoded there
+        try:
+            enc = (read_json_bounded(record) if record.is_file() else {}).get("encode") or {}
+        except ValueError:
+            return False
+        return (isinstance(enc.get("file"), str) and Path(enc["file"]).resolve() == path.resolve()
+                and path.read_bytes()[:4] == b"PGS\x00")
+
+    check_output(output, command="encode", source=run_dir, overwrite=overwrite, own=own)
+    if trainer is None:
+        trainer, scene = load_run(run_dir, device="cpu")
+    else:
+        scene = trainer.scene
+    scene_path = read_json_bounded(run_dir / "scene.json")["path"]
+    cfg = trainer.cfg
+    over = {k: v for k, v in (codec or {}).items() if v and v != getattr(cfg.codec, k)}
+    if over:
+        cfg = dataclasses.replace(cfg, codec=dataclasses.replace(cfg.codec, **over))
+    st = encode_model(cfg, trainer.model, trainer.entropy, output,
+                      extra_header=file_header(scene, scene_path), scene_bounds=scene_bounds(scene))
+    if not over:            # the run's own configuration: record it with the run
+        full = read_json_bounded(record) if record.exists() else {}
+        full["encode"] = {"file": str(output), "bytes": st["bytes"], "encode_s": st["encode_s"],
+                          "anchors": st["anchors"], "sections": st["sections"]}
+        write_json_atomic(record, full)
+    return st, trainer
 
 
 def train_run(scene_path: str, out: str | Path, cfg: Config, resume: bool = False,
@@ -112,8 +185,13 @@ def _finish_run(trainer, scene, scene_path, out: Path, cfg: Config, evaluate_aft
         "versions": versions(),
     }
     if evaluate_after:
-        results["test"] = evaluate_trainer(trainer, scene, render_dir=out / "renders" / "test"
-                                           if cfg.train.save_test_renders else None)
+        from baseline.eval.evaluate import method_key
+        from baseline.eval.metrics import default_lpips
+
+        folder = out / "test" / method_key(trainer.iteration)
+        results["test"] = evaluate_trainer(trainer, scene, render_dir=folder
+                                           if cfg.train.save_test_renders else None,
+                                           lpips_fn=default_lpips()[0])
     write_json_atomic(out / "results.json", results)
     return results
 
@@ -144,7 +222,7 @@ def evaluate_trainer(trainer: Trainer, scene, render_dir: Optional[Path] = None,
     cams = scene.test_cameras or scene.train_cameras
     return evaluate(trainer.model, scene, cams, phase=trainer.phase, entropy=trainer.entropy,
                     backend=trainer.cfg.train.rasterizer, coded=coded_state(trainer),
-                    render_dir=render_dir, lpips_fn=lpips_fn)
+                    render_dir=render_dir, lpips_fn=lpips_fn, iterations=trainer.iteration)
 
 
 def _scene_path(run_dir: Path) -> str:
@@ -196,6 +274,7 @@ class Renderable:
             dec = decoded if decoded is not None else decode_model(target)
             self.decoded = dec
             self.cfg, self.model, self.phase = dec.cfg, dec.model, "decoded"
+            self.iterations = dec.cfg.train.iterations      # what the file's model trained for
             self.model.to(resolve_device(device or self.cfg.train.device))
             self.model.bake_if_faster()
             scene_path = scene_override or dec.header.get("scene")
@@ -210,6 +289,7 @@ class Renderable:
             trainer, scene = load_run(target, device=device)
             self.trainer = trainer
             self.cfg, self.model, self.phase = trainer.cfg, trainer.model, trainer.phase
+            self.iterations = trainer.iteration
             self.entropy = trainer.entropy
             self.coded = coded_state(trainer)
             scene_path = scene_override or _scene_path(target)
@@ -224,11 +304,28 @@ class Renderable:
             check_bounds(self.model, str(target), *scene_bounds(self.scene))
         self.scene_path = scene_path
 
+    def cameras(self, split: str = "test") -> list:
+        """The views of ``split`` (the training views when the scene holds no test view)."""
+        cams = self.scene.test_cameras if split == "test" else self.scene.train_cameras
+        return cams or self.scene.train_cameras
+
+    def render(self, cam):
+        """One view [H, W, 3] float in [0, 1], rendered exactly as :meth:`evaluate` renders it
+        (the decoded model, or a run's coded state in HAC's adaptive phase)."""
+        from baseline.pipeline import render_view
+
+        bg = self.scene.background.float().to(self.model.xyz.device)
+        with torch.no_grad():
+            return render_view(self.model, cam, bg, phase=self.phase, training=False,
+                               entropy=self.entropy, backend=self.cfg.train.rasterizer,
+                               coded=self.coded).render.image
+
     def evaluate(self, split: str = "test", render_dir: Optional[Path] = None, lpips_fn=None) -> dict:
+        """Metrics and FPS on ``split``; ``render_dir``: also ``renders/``, ``gt/`` and
+        ``per_view.json`` there (3DGS's ``test/ours_<iterations>`` layout)."""
         from baseline.eval.evaluate import evaluate
 
-        cams = self.scene.test_cameras if split == "test" else self.scene.train_cameras
-        cams = cams or self.scene.train_cameras
-        return evaluate(self.model, self.scene, cams, phase=self.phase, entropy=self.entropy,
-                        backend=self.cfg.train.rasterizer, coded=self.coded,
-                        render_dir=render_dir, lpips_fn=lpips_fn)
+        return evaluate(self.model, self.scene, self.cameras(split), phase=self.phase,
+                        entropy=self.entropy, backend=self.cfg.train.rasterizer,
+                        coded=self.coded, render_dir=render_dir, lpips_fn=lpips_fn,
+                        iterations=self.iterations)

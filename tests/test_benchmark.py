@@ -46,8 +46,9 @@ def test_local_benchmark_tables_and_csvs(local_run):
         assert r["n_scenes"] == 2 and 0 < r["psnr"] < 60 and r["mb"] > 0
         assert r["others_mb"] == pytest.approx(r["mb"] - r["feature_mb"])
     for scene in ("alpha", "beta"):
-        with open(out / "survey" / "dataset0" / f"{scene}.csv") as f:
-            assert len(list(csv.DictReader(f))) == 2
+        for method in ("HAC", "Predict-GS"):     # one file per method and scene, one point
+            with open(out / "survey" / method / "dataset0" / f"{scene}.csv") as f:
+                assert [x["Submethod"] for x in csv.DictReader(f)] == [method]
         assert (out / scene / "report.md").exists()
     # the mean is the mean of the scenes' own results
     import json

@@ -53,10 +53,21 @@ def test_eval_encode_info_decode_render_export(trained, capsys):
     res = json.loads((dec / "results.json").read_text())
     assert res["ply"]["gaussians"] > 0 and (dec / "point_cloud.ply").exists()
     assert not (dec / "renders").exists()
+    capsys.readouterr()
     assert main(["eval", str(pgs)]) == 0
+    ev = json.loads(capsys.readouterr().out)
+    # the field's layout: OUT/test/ours_N/{renders,gt,per_view.json}, as 3DGS's test folders
+    assert ev["views"] == str(d / "m" / "test" / "ours_150") and ev["ssim_convention"] == "3dgs"
     renders = d / "renders"
     assert main(["render", str(pgs), "-o", str(renders)]) == 0
-    assert len(list(renders.glob("*.png"))) >= 1
+    for out in (renders, d / "m" / "test" / "ours_150"):
+        names = sorted(p.name for p in (out / "renders").glob("*.png"))
+        assert names and names == sorted(p.name for p in (out / "gt").glob("*.png"))
+        per = json.loads((out / "per_view.json").read_text())["ours_150"]
+        assert sorted(per["PSNR"]) == sorted(per["SSIM"]) == sorted(per["SSIM_skimage"]) == names
+        assert sum(per["PSNR"].values()) / len(names) == pytest.approx(ev["psnr"])
+        assert sum(per["SSIM"].values()) / len(names) == pytest.approx(ev["ssim"])
+    assert "per_view.json" in capsys.readouterr().out
     ply = d / "g.ply"
     assert main(["export-ply", str(run), "-o", str(ply)]) == 0
     head = ply.read_bytes().split(b"end_header")[0]

@@ -158,13 +158,34 @@ def test_interrupted_compare_resumes(scene, tmp_path, monkeypatch, capsys):
 
     from baseline.eval.report import method_label
     with open(out / "results.csv", newline="") as fh:
-        survey = {x["Submethod"]: x for x in csv.DictReader(fh)}
+        table = {(x["Method"], float(x["lambda"])): x for x in csv.DictReader(fh)}
     stored = json.loads((out / "results.json").read_text())["runs"]
-    assert len(survey) == len(stored)
+    assert len(table) == len(stored)
     for r in stored:
-        x = survey[f"{method_label(r['method'], ['demo'])} lambda={r['lmbda']:g}"]
-        assert float(x["PSNR"]) == pytest.approx(r["psnr"], abs=1e-4)
+        name = method_label(r["method"], ["demo"])
+        x = table[(name, r["lmbda"])]
+        assert float(x["PSNR"]) == pytest.approx(r["psnr"], abs=1e-6)
         assert int(x["Size [Bytes]"]) == r["bytes"] and int(x["#Gaussians"]) == r["masks_on"]["on"]
+        # the field's SSIM and scikit-image's, both measured on the decoded file
+        assert x["SSIM convention"] == r["ssim_convention"] == "3dgs"
+        assert float(x["SSIM (skimage)"]) == pytest.approx(r["ssim_skimage"], abs=1e-6)
+        # the survey's layout: one file per method and scene, one point named by the method
+        with open(out / "survey" / name / scene.parent.name / f"{scene.name}.csv") as fh:
+            (srow,) = list(csv.DictReader(fh))
+        assert srow["Submethod"] == name and int(srow["Size [Bytes]"]) == r["bytes"]
+        assert float(srow["SSIM"]) == pytest.approx(r["ssim"], abs=1e-6)
+        # the decoded file's views as 3DGS lays them out: renders/, gt/, per_view.json
+        views = Path(r["run_dir"]) / "decoded"
+        per = json.loads((views / "per_view.json").read_text())
+        assert list(per) == [f"ours_{ITERS}"]
+        psnrs = per[f"ours_{ITERS}"]["PSNR"]
+        assert sorted(psnrs) == sorted(p.name for p in (views / "renders").glob("*.png")) \
+            == sorted(p.name for p in (views / "gt").glob("*.png"))
+        assert len(psnrs) == r["n_views"]
+        assert sum(psnrs.values()) / len(psnrs) == pytest.approx(r["psnr"])
+    # first-run messages: a run trained now says so, a finished one is reused
+    assert "trained now, then encode, decode+eval, census]" in printed
+    assert "[reused (finished earlier)]" in printed
 
     # ---- the entropy-model swap: two comparable rows (same everything but the entropy model)
     b, f = rows[BASELINE], rows["entropy-factorized"]
@@ -280,7 +301,32 @@ def test_only_splits_a_comparison_and_remeasure_retakes_timings(scene, tmp_path)
     rows = {r["method"]: r for r in full["runs"]}
     assert rows[BASELINE]["stages_run"] == ["train", "encode", "decode+eval", "census"]
     assert rows["entropy-factorized"]["stages_run"] == []
-    again = run_compare(scene, out, vs=["entropy-factorized"], remeasure=True, **kw)
+    # identical commands give identical reports: the paired FPS of a rebuilt report is the one
+    # measured before, on the same files; --remeasure times it again
+    import baseline.eval.fpsbench as fpsbench
+    timed = []
+    real_bench = fpsbench.bench_files
+
+    def counting_bench(*a, **k):
+        timed.append(a)
+        return real_bench(*a, **k)
+
+    fpsbench.bench_files = counting_bench
+    try:
+        one = run_compare(scene, out, vs=["entropy-factorized"], paired_fps=True, **kw)
+        md = (out / "report.md").read_text()
+        two = run_compare(scene, out, vs=["entropy-factorized"], paired_fps=True, **kw)
+        assert len(timed) == 1 and (out / "report.md").read_text() == md
+        assert two["fps_pair"] == one["fps_pair"]
+        fp = one["fps_pair"]["entropy-factorized"]
+        assert fp["ratio"] == fp["fps"] / fp["fps_ref"]
+        assert fp["runs"] == [specs[0].dir.name, specs[1].dir.name]
+        assert f"{fp['ratio']:.2f}x ({fp['fps']:.1f} / {fp['fps_ref']:.1f} FPS)" in md
+        again = run_compare(scene, out, vs=["entropy-factorized"], remeasure=True,
+                            paired_fps=True, **kw)
+        assert len(timed) == 2
+    finally:
+        fpsbench.bench_files = real_bench
     for r in again["runs"]:
         assert r["stages_run"] == ["encode", "decode+eval"]
         before = rows[r["method"]]

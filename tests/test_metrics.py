@@ -1,4 +1,5 @@
-"""Metrics against hand-computed values: uint8 PSNR, SSIM (3DGS window), LPIPS plumbing."""
+"""Metrics against hand-computed values: uint8 PSNR, SSIM (3DGS's and scikit-image's), LPIPS
+plumbing."""
 from __future__ import annotations
 
 import math
@@ -7,7 +8,8 @@ import numpy as np
 import pytest
 import torch
 
-from baseline.eval.metrics import LPIPS, LPIPS_UNAVAILABLE, load_lpips, psnr, ssim, to_uint8
+from baseline.eval.metrics import (LPIPS, LPIPS_UNAVAILABLE, load_lpips, psnr, ssim,
+                                   ssim_skimage, to_uint8)
 
 torch.set_num_threads(1)
 
@@ -37,13 +39,18 @@ def test_uint8_rounding():
         psnr(np.zeros((4, 4, 3)), np.zeros((4, 5, 3)))
 
 
-def ssim_direct(a: np.ndarray, b: np.ndarray) -> float:
-    """SSIM written out: 11x11 Gaussian window (sigma 1.5, normalized), population moments,
-    averaged over every window that lies inside the image and over channels."""
+def _window() -> np.ndarray:
     x = np.arange(-5, 6)
     g = np.exp(-x ** 2 / (2 * 1.5 ** 2))
     g /= g.sum()
-    win = np.outer(g, g)
+    return np.outer(g, g)
+
+
+def ssim_direct(a: np.ndarray, b: np.ndarray) -> float:
+    """scikit-image's SSIM written out: 11x11 Gaussian window (sigma 1.5, normalized),
+    population moments, averaged over every window that lies inside the image and over
+    channels."""
+    win = _window()
     C1, C2 = (0.01 * 255) ** 2, (0.03 * 255) ** 2
     H, W, C = a.shape
     vals = []
@@ -61,18 +68,63 @@ def ssim_direct(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.mean(vals))
 
 
-def test_ssim_against_direct_computation():
+def ssim_3dgs_direct(a: np.ndarray, b: np.ndarray) -> float:
+    """3DGS's SSIM written out, pixel by pixel: the images / 255, the 11x11 Gaussian window
+    (sigma 1.5) over every pixel with the pixels outside the image read as 0 (conv2d's zero
+    padding: the window is not renormalized), C1 = 0.01^2, C2 = 0.03^2, the map averaged over
+    every pixel and channel."""
+    win = _window()
+    C1, C2 = 0.01 ** 2, 0.03 ** 2
+    H, W, C = a.shape
+    pa_all = np.zeros((H + 10, W + 10, C))
+    pb_all = np.zeros((H + 10, W + 10, C))
+    pa_all[5:-5, 5:-5] = a / 255.0
+    pb_all[5:-5, 5:-5] = b / 255.0
+    vals = []
+    for c in range(C):
+        for i in range(H):
+            for j in range(W):
+                pa = pa_all[i:i + 11, j:j + 11, c]
+                pb = pb_all[i:i + 11, j:j + 11, c]
+                ma, mb = (win * pa).sum(), (win * pb).sum()
+                va = (win * pa * pa).sum() - ma * ma
+                vb = (win * pb * pb).sum() - mb * mb
+                cov = (win * pa * pb).sum() - ma * mb
+                vals.append(((2 * ma * mb + C1) * (2 * cov + C2))
+                            / ((ma * ma + mb * mb + C1) * (va + vb + C2)))
+    return float(np.mean(vals))
+
+
+def test_ssim_is_3dgs_ssim_over_the_whole_image():
+    """The reported SSIM is 3DGS's: zero padding over the whole image, on random images of
+    several sizes, against the formula written out; it differs from scikit-image's (which
+    leaves the border out)."""
+    rng = np.random.default_rng(7)
+    for shape in ((11, 11, 3), (19, 23, 3), (16, 30, 1)):
+        gt = rng.integers(0, 256, shape).astype(np.uint8)
+        img = np.clip(gt + rng.normal(0, 25, gt.shape), 0, 255).round().astype(np.uint8)
+        assert ssim(img, gt) == pytest.approx(ssim_3dgs_direct(img, gt), abs=1e-12)
+        assert ssim(img, gt) == pytest.approx(ssim(gt, img), abs=1e-12)
+    assert abs(ssim(img, gt) - ssim_skimage(img, gt)) > 1e-3
+    flat = np.full((12, 14, 3), 200, np.uint8)
+    assert ssim(flat, flat) == pytest.approx(1.0, abs=1e-12)
+    # float input is rounded to uint8 first: +0.4/255 changes nothing
+    assert ssim(gt / 255.0 + 0.4 / 255, gt) == ssim(gt, gt)
+    with pytest.raises(ValueError):
+        ssim(gt[:10, :10], gt[:10, :10])
+
+
+def test_ssim_skimage_against_direct_computation():
     rng = np.random.default_rng(0)
     gt = rng.integers(0, 256, (19, 23, 3)).astype(np.uint8)
     img = np.clip(gt + rng.normal(0, 25, gt.shape), 0, 255).round().astype(np.uint8)
-    assert ssim(img, gt) == pytest.approx(ssim_direct(img, gt), abs=1e-9)
-    assert ssim(gt, gt) == 1.0
-    assert ssim(img, gt) == pytest.approx(ssim(gt, img))
-    assert 0.5 < ssim(img, gt) < 0.99
-    # float input is rounded to uint8 first: +0.4/255 changes nothing
-    assert ssim(gt / 255.0 + 0.4 / 255, gt) == 1.0
+    assert ssim_skimage(img, gt) == pytest.approx(ssim_direct(img, gt), abs=1e-9)
+    assert ssim_skimage(gt, gt) == 1.0
+    assert ssim_skimage(img, gt) == pytest.approx(ssim_skimage(gt, img))
+    assert 0.5 < ssim_skimage(img, gt) < 0.99
+    assert ssim_skimage(gt / 255.0 + 0.4 / 255, gt) == 1.0
     with pytest.raises(ValueError):
-        ssim(gt[:10, :10], gt[:10, :10])
+        ssim_skimage(gt[:10, :10], gt[:10, :10])
 
 
 def _random_lpips(seed=0) -> LPIPS:

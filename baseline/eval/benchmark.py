@@ -13,8 +13,8 @@ comparison report is written (``pgs compare`` reusing every run), then the datas
 * BD-rate and BD-PSNR against the baseline (and of a method against each contender it
   extends) per scene and their mean;
 * speed against error (training time, encode / decode time, FPS, Gaussians per view);
-* the survey CSVs, one per scene (``survey/<Dataset>/<scene>.csv``), as the 3DGS compression
-  survey collects them.
+* the survey CSVs, one per method and scene (``survey/<method>/<Dataset>/<scene>.csv``: each
+  method's folder laid out as the 3DGS compression survey reads a method's ``results/``).
 
 Protocols (``--protocol``) add the dataset's HAC patch: ``mip360``, ``tandt``,
 ``deepblending``, ``nerf-synthetic``.
@@ -132,7 +132,7 @@ def run_benchmark(root, out, vs: list[str] = (), lambdas=None, seeds=None, scene
     results["table"] = dataset_table(per_scene)
     results["bd"] = dataset_bd(per_scene)
     write_json_atomic(out / "results.json", results)
-    write_survey(per_scene, out / "survey" / dataset)
+    write_survey(per_scene, out / "survey", dataset)
     write_text_atomic(out / "report.md", format_benchmark(results))
     if echo:
         print(format_benchmark(results, markdown=False))
@@ -148,7 +148,7 @@ def _key(r: dict):
 
 def dataset_table(per_scene: dict) -> list[dict]:
     """Mean over the scenes per (method, lambda): the seed means first within each scene."""
-    from baseline.eval.report import untimed
+    from baseline.eval.report import field_ssim, untimed
 
     def timed(r):   # an untimed training time (stalled, marked, two machines) measures no cost
         return None if untimed(r) else r["train_time_s"]
@@ -163,7 +163,7 @@ def dataset_table(per_scene: dict) -> list[dict]:
                 vals = [f(r) for r in rs]
                 return None if any(v is None for v in vals) else sum(vals) / len(vals)
             acc.setdefault(k, {})[scene] = {
-                "psnr": mean(lambda r: r["psnr"]), "ssim": mean(lambda r: r["ssim"]),
+                "psnr": mean(lambda r: r["psnr"]), "ssim": mean(field_ssim),
                 "lpips": mean(lambda r: r.get("lpips")), "mb": mean(lambda r: r["mb"]),
                 "feature_mb": mean(lambda r: r["groups"].get("feature", 0) / MB),
                 "train_s": mean(timed), "fps": mean(lambda r: r["fps"]),
@@ -207,12 +207,12 @@ def dataset_bd(per_scene: dict) -> list[dict]:
     return rows
 
 
-def write_survey(per_scene: dict, folder: Path) -> None:
-    from baseline.eval.report import write_survey_csv
+def write_survey(per_scene: dict, folder: Path, dataset: str) -> None:
+    from baseline.eval.report import write_survey as write_scene
 
     for scene, res in per_scene.items():
         if res.get("runs"):
-            write_survey_csv(res, folder / f"{scene}.csv")
+            write_scene(res, folder, dataset, scene)
 
 
 def _f(v, nd):
@@ -220,7 +220,7 @@ def _f(v, nd):
 
 
 def format_benchmark(res: dict, markdown: bool = True) -> str:
-    from baseline.eval.report import method_label, STALL_LIMIT
+    from baseline.eval.report import STALL_FLOOR_S, STALL_LIMIT, method_label
 
     def name(m):
         return method_label(m, res.get("common_patches", ()))
@@ -258,7 +258,9 @@ def format_benchmark(res: dict, markdown: bool = True) -> str:
     parts = [f"# Benchmark: {res['dataset']} ({len(res['scenes'])} scenes)" if markdown else
              f"Benchmark: {res['dataset']} ({len(res['scenes'])} scenes)",
              f"Scenes: {', '.join(res['scenes'])}; {proto}. Each scene's comparison report is in "
-             f"its folder; means below are over the scenes (within a scene, over its seeds).",
+             f"its folder; means below are over the scenes (within a scene, over its seeds). "
+             f"SSIM: 3DGS's (Gaussian window, zero padding; '-' where a scene's records hold "
+             f"only scikit-image's).",
              ("## " if markdown else "") + "Mean over the scenes (as the paper's Tables 1 and 3)",
              table(head, rows),
              ("## " if markdown else "") + "BD-rate against the baseline, and of a method that "
@@ -266,12 +268,13 @@ def format_benchmark(res: dict, markdown: bool = True) -> str:
              "bytes at equal PSNR)",
              table(bd_head, bd_rows) if any(any(c != "-" for c in r[1:]) for r in bd_rows)
              else "BD-rate needs at least 3 rate points (--lambda) per method.",
-             f"Survey CSVs: `survey/{res['dataset']}/<scene>.csv`. Executor: {res['executor']} "
+             f"Survey CSVs: `survey/<method>/{res['dataset']}/<scene>.csv`. Executor: {res['executor']} "
              f"{res['executor_options'] or ''}; runs done by this invocation: {res['jobs_run']}; "
              f"wall {res['wall_s_this_invocation']:.0f} s."]
     if any(r["train_s"] is None for r in res["table"]):
         parts.append(f"train (s) '-': a run of that row stalled over {STALL_LIMIT:.0%} of its "
-                     "training time (paused, or sharing its core) or was marked untimed; its "
+                     f"training time and {STALL_FLOOR_S:.0f} s (paused, or sharing its core) or "
+                     "was marked untimed; its "
                      "scene's report names it.")
     if res["failed"]:
         parts.append("FAILED after retries: " + "; ".join(f"{n} ({e})" for n, e in res["failed"]))

@@ -17,7 +17,8 @@ comparison picks up where it stopped:
 3. **decoded** -- ``decode_model`` the file alone and evaluate the *decoded* model on the test
    views (PSNR / SSIM / LPIPS on uint8 images, FPS); models whose feature provider keeps a
    decoded-model cache (``build_cache`` / ``clear_cache``, Predict-GS's SFP) are timed with and
-   without it. Done when ``compare.json`` holds these (with LPIPS if weights are given now).
+   without it. Done when ``compare.json`` holds these (with LPIPS if weights are given now);
+   the views are in ``RUN/decoded/`` (``renders/``, ``gt/``, ``per_view.json``: 3DGS's layout).
 
 A run folder reduced to its records (``config.toml``, ``scene.json``, ``results.json``,
 ``compare.json``: no checkpoint, no model file) counts as finished and is reported from them, so
@@ -52,6 +53,8 @@ BASELINE = "baseline"
 RECORD = "compare.json"
 MODEL_FILE = "model.pgs"
 RESULTS_FORMAT = "pgs-compare/1"
+# the decoded file's views of a run: renders/, gt/ and per_view.json (3DGS's layout)
+DECODED_VIEWS = "decoded"
 MB = 2 ** 20
 
 
@@ -293,6 +296,7 @@ def _reference_stages(spec, scene_path, progress, stage) -> dict:
     return {"method": spec.method.name, "method_patches": list(spec.method.patches),
             "patches": list(spec.cfg.patches), "run_dir": str(spec.dir),
             "config_hash": spec.hash, "psnr": test["psnr"], "ssim": test["ssim"],
+            **ssim_fields(test),
             "lpips": test.get("lpips"), "float32_bytes": ref["float32_bytes"],
             "mb": ref["float32_bytes"] / MB, "anchors": ref["anchors"],
             "gaussians_mean": test.get("gaussians_mean"), "fps": test.get("fps"),
@@ -477,9 +481,12 @@ def _stage_decoded(spec: RunSpec, scene_path: str, record: dict, lpips_fn,
     cams = scene.test_cameras or scene.train_cameras
     backend = dec.cfg.train.rasterizer
     ev = evaluate(dec.model, scene, cams, phase="decoded", backend=backend,
-                  render_dir=spec.dir / "renders" / "decoded", lpips_fn=lpips_fn)
+                  render_dir=spec.dir / DECODED_VIEWS, lpips_fn=lpips_fn,
+                  iterations=dec.cfg.train.iterations)
     out = {"bytes": pgs.stat().st_size, "decode_s": dec.decode_s, "psnr": ev["psnr"],
-           "ssim": ev["ssim"], "lpips": ev["lpips"], "fps": ev["fps"], "n_views": ev["n_views"],
+           "ssim": ev["ssim"], "ssim_skimage": ev["ssim_skimage"],
+           "ssim_convention": ev["ssim_convention"],
+           "lpips": ev["lpips"], "fps": ev["fps"], "n_views": ev["n_views"],
            "lpips_weights": lpips if lpips_fn is not None else None,
            "gaussians_mean": ev["gaussians_mean"], "anchors": ev["anchors"],
            **{k: ev[k] for k in ALIVE_KEYS},
@@ -603,6 +610,16 @@ def mark_untimed(specs: list[RunSpec], name: str, why: str, lpips: Optional[str]
         _write_record(spec, record)
 
 
+def ssim_fields(measured: dict) -> dict:
+    """``ssim_convention`` and ``ssim_skimage`` of a measurement (a record's decoded stage, a
+    run's test evaluation): records from before the convention was kept measured "ssim" with
+    scikit-image, so that value is their ``ssim_skimage`` too."""
+    conv = measured.get("ssim_convention", "skimage")
+    return {"ssim_convention": conv,
+            "ssim_skimage": measured.get("ssim_skimage",
+                                         measured.get("ssim") if conv == "skimage" else None)}
+
+
 def make_row(spec: RunSpec, res: dict, record: dict) -> dict:
     """One flat results row from a run's results.json and compare.json (no new measurement)."""
     enc, dec = record["encode"], record["decoded"]
@@ -616,6 +633,9 @@ def make_row(spec: RunSpec, res: dict, record: dict) -> dict:
         "run_dir": str(spec.dir),
         "config_hash": spec.hash,
         "psnr": dec["psnr"], "ssim": dec["ssim"], "lpips": dec["lpips"],
+        # which SSIM "ssim" is (baseline.eval.metrics.SSIM_CONVENTIONS): records written before
+        # the convention was kept hold scikit-image's
+        **ssim_fields(dec),
         "lpips_weights": dec.get("lpips_weights"),
         "bytes": dec["bytes"], "mb": dec["bytes"] / MB,
         "sections": enc["sections"], "groups": enc["groups"],
@@ -720,11 +740,18 @@ def _warm_up_rasterizer(specs: list[RunSpec]) -> None:
     kernels()
 
 
-def paired_fps_bench(results: dict, rounds: int = 3, threads: int = 1) -> dict:
+def paired_fps_bench(results: dict, rounds: int = 3, threads: int = 1,
+                     previous: dict | None = None) -> dict:
     """Each contender's decoded file timed against the baseline's in one process
     (:func:`baseline.eval.fpsbench.bench_files`: same views, rounds in rotated order), at the
     middle rate point both have (the lowest seed): ``{method: {ratio, fps, fps_ref, lmbda,
-    rounds, threads}}``; FPS taken by separate runs at separate times make no ratio."""
+    rounds, threads, ratio_rounds, runs, bytes}}``; FPS taken by separate runs at separate times
+    make no ratio. ``ratio`` is ``fps / fps_ref`` (each the median over rounds), the figures it
+    is printed beside; ``ratio_rounds`` the range of the per-round ratios.
+
+    ``previous``: the ``fps_pair`` of an earlier report of this comparison; a pair of the same
+    two runs and files (folder names and byte counts) is reused as measured, so a report rebuilt
+    from finished runs is the same report (``--remeasure`` passes None and times it again)."""
     from baseline.eval.fpsbench import bench_files
     from baseline.eval.report import method_names, runs_of
 
@@ -740,15 +767,32 @@ def paired_fps_bench(results: dict, rounds: int = 3, threads: int = 1) -> dict:
         lm = lams[len(lams) // 2]
         pick = [min((r for r in runs_of(results, x) if r["lmbda"] == lm),
                     key=lambda r: -1 if r.get("seed") is None else r["seed"]) for x in (base, m)]
+        ident = {"runs": [Path(r["run_dir"]).name for r in pick],
+                 "bytes": [int(r["bytes"]) for r in pick]}
+        old = (previous or {}).get(m)
+        if old and all(old.get(k) == v for k, v in ident.items()) \
+                and old.get("rounds") == rounds:
+            out[m] = old                   # measured earlier on these very files
+            continue
         files = [Path(r["run_dir"]) / MODEL_FILE for r in pick]
         if not all(f.exists() for f in files):
             continue                       # records only: no file to time
         res = bench_files([str(f) for f in files], rounds=rounds, threads=threads)
         plain = [r for r in res["rows"] if r["form"] == "plain"]
         ref, con = plain[0], plain[-1]
-        out[m] = {"ratio": con["ratio"], "fps": con["fps"], "fps_ref": ref["fps"], "lmbda": lm,
-                  "rounds": rounds, "threads": res["threads"]}
+        out[m] = {"ratio": con["fps"] / ref["fps"], "fps": con["fps"], "fps_ref": ref["fps"],
+                  "lmbda": lm, "rounds": rounds, "threads": res["threads"],
+                  "ratio_rounds": [con["ratio_min"], con["ratio_max"]], **ident}
     return out
+
+
+def _stages_text(stages: list[str]) -> str:
+    """What a progress line says a run's stages were in this command: trained, measured, or
+    reused as recorded."""
+    if "train" in stages:
+        rest = [x for x in stages if x != "train"]
+        return "trained now" + (f", then {', '.join(rest)}" if rest else "")
+    return "measured now: " + ", ".join(stages) if stages else "reused (finished earlier)"
 
 
 def run_compare(scene: str | Path, out: str | Path, vs: list[str] = (),
@@ -760,7 +804,8 @@ def run_compare(scene: str | Path, out: str | Path, vs: list[str] = (),
                 codec: Optional[str] = None, seeds: Optional[list[int]] = None,
                 panel_views: Optional[list[int]] = None, paired_fps: bool = False,
                 scope: Optional[str] = None, lambda_for: Optional[list[list]] = None,
-                untimed: Optional[list[list[str]]] = None, overwrite: bool = False) -> dict:
+                untimed: Optional[list[list[str]]] = None, overwrite: bool = False,
+                done_before: dict | None = None) -> dict:
     """Run (or resume) a comparison; write ``out/results.json``, ``out/report.md`` and plots.
 
     ``only``: bring only the runs of these methods (``baseline``, a ``--vs`` value, or a name as
@@ -788,6 +833,13 @@ def run_compare(scene: str | Path, out: str | Path, vs: list[str] = (),
     training time is no measurement for a reason their record cannot show (:func:`mark_untimed`).
     ``overwrite``: ``out`` may hold another output of the toolkit (else it is new, empty, or
     this scene's comparison: :func:`baseline.guard.check_output`).
+    ``done_before``: ``{run folder: [stages]}`` this command already ran elsewhere (``pgs demo``'s
+    parallel workers), so that its messages say those runs were trained now, not reused.
+    ``lpips_weights`` None: the weight files found on this machine, if any
+    (:func:`baseline.eval.metrics.find_lpips_weights`).
+
+    A report rebuilt from finished runs reuses their recorded measurements, the paired FPS
+    included: the same command gives the same report (``remeasure`` retakes them).
     """
     from baseline.eval.metrics import load_lpips
     from baseline.eval.report import format_report, write_report
@@ -814,6 +866,10 @@ def run_compare(scene: str | Path, out: str | Path, vs: list[str] = (),
                 for o in only]
         specs = [s for s in specs if s.method.name in only]
         methods = [m for m in methods if m.name in only]
+    if lpips_weights is None:
+        from baseline.eval.metrics import find_lpips_weights
+
+        lpips_weights = find_lpips_weights()
     lpips_fn, lpips_reason = load_lpips(lpips_weights)
     lp_id = lpips_id(lpips_weights) if lpips_fn is not None else None
     from baseline.device import resolve_device
@@ -829,6 +885,10 @@ def run_compare(scene: str | Path, out: str | Path, vs: list[str] = (),
                      overwrite=overwrite, own=is_compare_folder)
         write_marker(out, "compare", scene_path)
     out.mkdir(parents=True, exist_ok=True)
+    try:                # the paired FPS an earlier report of this comparison measured
+        earlier_fps = _read_json(out / "results.json").get("fps_pair")
+    except ValueError:
+        earlier_fps = None
 
     results = {
         "format": RESULTS_FORMAT,
@@ -854,7 +914,10 @@ def run_compare(scene: str | Path, out: str | Path, vs: list[str] = (),
     for name, why in untimed or ():
         mark_untimed(specs, name, why, lp_id, codec_over)
     finished = [is_finished(s, lp_id, codec_over) for s in specs]   # reads each run's records once
-    n_done = 0 if remeasure else sum(finished)
+    earlier = {str(Path(k).resolve()): list(v) for k, v in (done_before or {}).items() if v}
+    # runs this command brought to the end elsewhere are no runs that had finished before it
+    n_done = 0 if remeasure else sum(f and str(s.dir.resolve()) not in earlier
+                                     for s, f in zip(specs, finished))
     if echo and methods:
         per = sorted({sum(s.method.name == m.name for s in specs) for m in methods})
         per_txt = "/".join(str(n // len(seeds) if seeds else n) for n in per)
@@ -897,8 +960,7 @@ def run_compare(scene: str | Path, out: str | Path, vs: list[str] = (),
         results["reference"] = row
         write_json_atomic(out / "results.json", results)
         if echo:
-            what = ("measured now: " + ", ".join(row["stages_run"]) if row["stages_run"]
-                    else "reused (finished earlier)")
+            what = _stages_text(earlier.get(str(ref_spec.dir.resolve()), []) + row["stages_run"])
             print(f"{head}: PSNR {row['psnr']:.3f} dB  float32 {row['mb']:.4f} MB  [{what}]")
     bar = tqdm(total=len(specs), desc="compare", unit="run", disable=not progress,
                dynamic_ncols=True, position=0)
@@ -916,8 +978,7 @@ def run_compare(scene: str | Path, out: str | Path, vs: list[str] = (),
         results["runs"].append(row)
         write_json_atomic(out / "results.json", results)       # partial results survive
         if echo:
-            what = "measured now: " + ", ".join(row["stages_run"]) if row["stages_run"] \
-                else "reused (finished earlier)"
+            what = _stages_text(earlier.get(str(spec.dir.resolve()), []) + row["stages_run"])
             tqdm.write(f"{head}: PSNR {row['psnr']:.3f} dB  {row['mb']:.4f} MB  "
                        f"FPS {row['fps']:.1f}  [{what}]")
         bar.update(1)
@@ -925,7 +986,8 @@ def run_compare(scene: str | Path, out: str | Path, vs: list[str] = (),
     results["complete"] = not results["missing"]
     results["wall_s_this_invocation"] = time.perf_counter() - t0
     if paired_fps and results["runs"]:
-        results["fps_pair"] = paired_fps_bench(results)
+        results["fps_pair"] = paired_fps_bench(results, previous=None if remeasure
+                                               else earlier_fps)
     if scope:
         results["scope"] = scope
     paths = write_report(results, out, plots=plots, panel_views=panel_views)

@@ -6,12 +6,15 @@ channel-last ``[H, W, C]`` (torch tensors or numpy arrays), like ``Scene.image``
 
 * :func:`psnr`: ``10 log10(255^2 / MSE)`` over all pixels and channels of the uint8 values
   (``inf`` for identical images).
-* :func:`ssim`: ``skimage.metrics.structural_similarity`` on the uint8 values with the 3DGS
-  window: ``gaussian_weights=True, sigma=1.5`` (11 x 11 Gaussian window, skimage's truncate 3.5),
-  ``use_sample_covariance=False``, ``data_range=255``, ``channel_axis=-1``; K1 = 0.01,
-  K2 = 0.03. skimage averages the SSIM map over the pixels whose window lies inside the image
-  (a 5-pixel border is left out) and over channels; 3DGS's training-time PyTorch SSIM pads with
-  zeros instead, so values differ slightly near borders. This is the evaluation number.
+* :func:`ssim`: SSIM as 3DGS, Scaffold-GS and HAC report it (``ssim`` in 3DGS's
+  ``utils/loss_utils.py``): the images in [0, 1] (uint8 / 255), an 11 x 11 Gaussian window
+  (sigma 1.5) applied by convolution with zero padding over the whole image, C1 = 0.01^2,
+  C2 = 0.03^2, the SSIM map averaged over every pixel and channel. This is the evaluation
+  number (:data:`SSIM_CONVENTION`), the one published tables hold.
+* :func:`ssim_skimage`: ``skimage.metrics.structural_similarity`` with the same window
+  (``gaussian_weights=True, sigma=1.5, use_sample_covariance=False, data_range=255``): it
+  averages only over the pixels whose window lies inside the image (a 5-pixel border left
+  out), so it differs from :func:`ssim` near borders; kept as a second, named metric.
 * :class:`LPIPS`: LPIPS with a VGG16 backbone in plain torch (no torchvision here). Weights are
   never downloaded or guessed: :func:`load_lpips` loads them from a user-given ``.pth`` file and
   otherwise reports ``LPIPS unavailable: pass --lpips-weights PATH``.
@@ -26,8 +29,17 @@ import numpy as np
 import torch
 from skimage.metrics import structural_similarity
 
-LPIPS_UNAVAILABLE = ("LPIPS unavailable: pass --lpips-weights LIN.pth,VGG16.pth (the lpips "
-                     "package's weights/v0.1/vgg.pth and torchvision's vgg16-397923af.pth; README)")
+LPIPS_UNAVAILABLE = ("LPIPS unavailable: its two weight files are not here; get the lpips "
+                     "package's weights/v0.1/vgg.pth (pip download --no-deps lpips, unzip the "
+                     "wheel) and torchvision's vgg16-397923af.pth, then pass --lpips-weights "
+                     "LIN.pth,VGG16.pth (README, LPIPS)")
+
+# What a record's "ssim" is: "3dgs" (the field's, :func:`ssim`). Records written before this
+# convention was recorded hold scikit-image's SSIM under "ssim" (:func:`ssim_skimage`).
+SSIM_CONVENTION = "3dgs"
+SSIM_CONVENTIONS = {"3dgs": "3DGS's (11x11 Gaussian window, sigma 1.5, zero padding over the "
+                            "whole image, as 3DGS / Scaffold-GS / HAC compute it)",
+                    "skimage": "scikit-image's (the same window, a 5-pixel border left out)"}
 
 SSIM_SETTINGS = dict(gaussian_weights=True, sigma=1.5, use_sample_covariance=False,
                      data_range=255, channel_axis=-1)
@@ -73,7 +85,25 @@ def format_psnr(v: float, digits: int = 2) -> str:
 
 
 def ssim(img, gt) -> float:
-    """SSIM of uint8-rounded images [H, W, C] with the 3DGS 11x11 Gaussian window (sigma 1.5)."""
+    """SSIM of uint8-rounded images [H, W, C] as 3DGS computes it (the module doc): values / 255,
+    11x11 Gaussian window (sigma 1.5), zero padding, mean over pixels and channels.
+
+    The window is applied by :func:`baseline.train.losses.ssim`, the training loss's SSIM (the
+    same formula as 3DGS's ``utils/loss_utils.py``), here in float64; no library pads with
+    zeros as 3DGS does (scikit-image crops the border, torchmetrics reflects it)."""
+    from baseline.train.losses import ssim as ssim_zero_padded
+
+    a, b = _pair(img, gt)
+    if min(a.shape[:2]) < 11:
+        raise ValueError(f"SSIM needs images of at least 11 x 11 pixels, got {a.shape[:2]}")
+    x = torch.from_numpy(a.astype(np.float64) / 255.0)
+    y = torch.from_numpy(b.astype(np.float64) / 255.0)
+    return float(ssim_zero_padded(x, y))
+
+
+def ssim_skimage(img, gt) -> float:
+    """scikit-image's SSIM of uint8-rounded images [H, W, C] with the 3DGS window (module doc):
+    the border whose window leaves the image is not averaged."""
     a, b = _pair(img, gt)
     if min(a.shape[:2]) < 11:
         raise ValueError(f"SSIM needs images of at least 11 x 11 pixels, got {a.shape[:2]}")
@@ -209,6 +239,13 @@ def find_lpips_weights() -> Optional[str]:
     lin = Path(spec.origin).parent / LPIPS_LIN_FILE
     vgg = Path(torch.hub.get_dir()) / "checkpoints" / VGG16_FILE
     return f"{lin},{vgg}" if lin.is_file() and vgg.is_file() else None
+
+
+def default_lpips(weights: str | Path | None = None, device: str | torch.device = "cpu"
+                  ) -> tuple[LPIPS | None, str | None]:
+    """:func:`load_lpips` of ``weights``, else of the files :func:`find_lpips_weights` finds on
+    this machine: LPIPS is measured whenever both weight files can be found."""
+    return load_lpips(weights or find_lpips_weights(), device)
 
 
 def lpips_paths(weights: str | Path) -> list[Path]:

@@ -3,7 +3,8 @@
 * ``rd.png``    -- rate-distortion: decoded file size (MB) vs test PSNR (dB), one line per method;
 * ``bits.png``  -- bit allocation: one stacked bar per method at each rate point, stacked by group;
 * ``speed.png`` -- speed vs quality: render FPS vs PSNR (with / without the decoded-model cache)
-  and training time vs PSNR.
+  and training time vs PSNR (runs whose time is no measurement, :func:`report.untimed`,
+  hollow and named).
 
 Figures are built with ``matplotlib.figure.Figure`` + the Agg canvas, so no GUI backend or global
 pyplot state is touched.
@@ -13,7 +14,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from baseline.eval.report import (GROUP_ORDER, MB, label, method_names, rate_points, runs_of,
-                                   seed_mean_points, seeds_of)
+                                   seed_mean_points, seeds_of, untimed)
 from baseline.fileio import atomic_path
 
 GROUP_COLORS = {"feature": "#d62728", "anchor": "#1f77b4", "scaling": "#2ca02c",
@@ -139,7 +140,7 @@ def plot_speed(results: dict, path: Path) -> Path:
     fig = _figure(10.0, 4.4)
     ax_f, ax_t = fig.subplots(1, 2)
     style = _style(results)
-    any_cache = False
+    any_cache = any_untimed = False
     for m in method_names(results):
         rs = sorted(runs_of(results, m), key=lambda r: r["psnr"])
         if not rs:
@@ -155,13 +156,25 @@ def plot_speed(results: dict, path: Path) -> Path:
             for r in cached:
                 ax_f.annotate("", xy=(r["fps"], r["psnr"]), xytext=(r["fps_nocache"], r["psnr"]),
                               arrowprops=dict(arrowstyle="->", color=c, alpha=0.5))
-        ax_t.plot([r["train_time_s"] for r in rs], [r["psnr"] for r in rs], ls="", marker=mk,
-                  color=c, ms=8, label=label(results, m))
+        timed = [r for r in rs if not untimed(r)]
+        ax_t.plot([r["train_time_s"] for r in timed], [r["psnr"] for r in timed], ls="",
+                  marker=mk, color=c, ms=8, label=label(results, m))
+        waited = [r for r in rs if untimed(r)]
+        if waited:       # left out of the verdict's ratio: drawn hollow, named
+            any_untimed = True
+            ax_t.plot([r["train_time_s"] for r in waited], [r["psnr"] for r in waited], ls="",
+                      marker=mk, color=c, ms=8, mfc="none",
+                      label=f"{label(results, m)} (untimed)")
+            for r in waited:
+                ax_t.annotate(f"λ={r['lmbda']:g}: untimed", (r["train_time_s"], r["psnr"]),
+                              textcoords="offset points", xytext=(5, 5), fontsize=7, color=c)
     ax_f.set_xlabel("render speed of the decoded model (FPS)")
     ax_f.set_title("Rendering speed vs quality" + (" (hollow: without cache)" if any_cache else ""),
                    fontsize=10)
     ax_t.set_xlabel("training time (s)")
-    ax_t.set_title("Training time vs quality", fontsize=10)
+    ax_t.set_title("Training time vs quality" + (" (hollow: untimed, stalled or marked; left "
+                                                 "out of the ratio)" if any_untimed else ""),
+                   fontsize=10)
     for ax in (ax_f, ax_t):
         ax.set_ylabel("PSNR on the test views (dB)")
         ax.grid(True, alpha=0.3)

@@ -114,9 +114,13 @@ def seed_mean_points(results: dict, method: str) -> list[dict]:
         if sorted(int(r["seed"]) for r in rs) != seeds:
             continue
         pt = {"lmbda": lm, "n": len(rs)}
+        convs = {ssim_convention(r) for r in rs}
+        pt["ssim_convention"] = convs.pop() if len(convs) == 1 else None
         for key in ("mb", "psnr", "ssim", "bytes", "gaussians_mean", "mask_on_fraction",
                     "anchors"):
             vals = [r.get(key) for r in rs]
+            if key == "ssim" and pt["ssim_convention"] is None:
+                vals = [None]           # two SSIM conventions make no mean
             if any(v is None for v in vals):
                 pt[key] = pt[key + "_min"] = pt[key + "_max"] = None
                 continue
@@ -325,6 +329,54 @@ def _lam(r: dict) -> str:
     return f"{r['lmbda']:g}" + (f" s{r['seed']}" if r.get("seed") is not None else "")
 
 
+def ssim_convention(r: dict) -> str:
+    """Which SSIM a row's "ssim" is (:data:`baseline.eval.metrics.SSIM_CONVENTIONS`): rows and
+    records from before the convention was kept hold scikit-image's."""
+    return r.get("ssim_convention") or "skimage"
+
+
+def field_ssim(r: dict) -> float | None:
+    """A row's SSIM as 3DGS / HAC compute it (the field's tables), None where it was not
+    measured (records that hold scikit-image's only)."""
+    return r.get("ssim") if ssim_convention(r) == "3dgs" else None
+
+
+def _ssim_cell(results: dict, r: dict) -> str:
+    """A row's SSIM; where the report's rows mix conventions, the rows of the minority
+    convention say theirs ("0.9521 (skimage)"), so no two conventions stand side by side
+    unmarked."""
+    v = _f(r.get("ssim"), 4)
+    conv = ssim_convention(r)
+    return v if conv == _main_ssim_convention(results) or v == "-" else f"{v} ({conv})"
+
+
+def _main_ssim_convention(results: dict) -> str:
+    rows = list(results.get("runs", [])) + ([results["reference"]] if results.get("reference")
+                                            else [])
+    convs = [ssim_convention(r) for r in rows]
+    if not convs:
+        return "3dgs"
+    return max(sorted(set(convs)), key=lambda c: (convs.count(c), c == "3dgs"))
+
+
+def ssim_note(results: dict) -> str:
+    """One line: which SSIM the report's figures are (and which rows are the other one's)."""
+    from baseline.eval.metrics import SSIM_CONVENTIONS
+
+    main = _main_ssim_convention(results)
+    note = f"SSIM: {SSIM_CONVENTIONS.get(main, main)}"
+    rows = list(results.get("runs", [])) + ([results["reference"]] if results.get("reference")
+                                            else [])
+    other = sorted({ssim_convention(r) for r in rows} - {main})
+    if other:
+        note += ("; rows marked " + ", ".join(f"({c})" for c in other) + " hold "
+                 + "; ".join(SSIM_CONVENTIONS.get(c, c) for c in other)
+                 + ", measured before the field's SSIM was (their records were written then)")
+    elif main == "skimage":
+        note += ": these records were measured before the field's SSIM was kept"
+    return note + "."
+
+
 class Table:
     def __init__(self, title: str, headers: list[str], rows: list[list[str]], notes=(),
                  left: int = 1):
@@ -373,7 +425,7 @@ def quality_table(results: dict) -> Table:
     for r in ordered_runs(results):
         p = baseline_partner(results, r)
         rows.append([label(results, r["method"]), _lam(r), _f(r["psnr"], 3),
-                     _f((r.get("pre_encode") or {}).get("psnr"), 3), _f(r["ssim"], 4),
+                     _f((r.get("pre_encode") or {}).get("psnr"), 3), _ssim_cell(results, r),
                      "unavailable" if r["lpips"] is None else _f(r["lpips"], 4),
                      _f(r["mb"], 4),
                      "ref" if _is_base(results, r) else _pct(_change(r["bytes"], p and p["bytes"])),
@@ -381,7 +433,7 @@ def quality_table(results: dict) -> Table:
     notes = ["Decoded .pgs file on the test views; metrics on uint8 images. 'pre-encode': PSNR "
              "of the trained model before coding. MB = file bytes / 2^20; size change vs the "
              "baseline at the same rate point.",
-             _lpips_note(results)]
+             ssim_note(results), _lpips_note(results)]
     return Table("Quality and size (decoded file)",
                  ["method", "lambda", "PSNR (dB)", "pre-encode", "SSIM", "LPIPS", "size (MB)",
                   f"vs {label(results, 'baseline')}", "anchors"], rows, notes, left=2)
@@ -629,11 +681,12 @@ def reference_table(results: dict) -> Optional[Table]:
     ref = results.get("reference")
     if not ref:
         return None
-    rows = [[f"reference: {ref['method']}", "-", _f(ref["psnr"], 3), "ref", _f(ref["ssim"], 4),
+    rows = [[f"reference: {ref['method']}", "-", _f(ref["psnr"], 3), "ref", _ssim_cell(results, ref),
              _f(ref["mb"], 4), "1x"]]
     for r in ordered_runs(results):
         rows.append([label(results, r["method"]), _lam(r), _f(r["psnr"], 3), f"{r['psnr'] - ref['psnr']:+.3f}",
-                     _f(r["ssim"], 4), _f(r["mb"], 4), f"{ref['float32_bytes'] / r['bytes']:.1f}x"])
+                     _ssim_cell(results, r), _f(r["mb"], 4),
+                     f"{ref['float32_bytes'] / r['bytes']:.1f}x"])
     notes = [f"Reference: the uncompressed run `{' + '.join(ref['patches'])}` on the same "
              f"protocol ({ref['iterations']} iterations, {ref['anchors']} anchors, "
              f"{ref['float32_bytes']} bytes). Its quality is the trained model's on the test "
@@ -829,7 +882,10 @@ def seed_table(results: dict) -> Optional[Table]:
                 sp = (f"{100 * (hi - lo) / v:.1f}%" if key in ("mb", "gaussians_mean", "anchors")
                       and v else f"{hi - lo:.{nd}f}")
                 return f"{v:.{nd}f} ({sp})"
-            rows.append([label(results, m), f"{pt['lmbda']:g}", str(pt["n"]), ms("psnr", 3), ms("ssim", 4),
+            sv = ms("ssim", 4)
+            if sv != "-" and pt.get("ssim_convention") != _main_ssim_convention(results):
+                sv += f" ({pt.get('ssim_convention')})"
+            rows.append([label(results, m), f"{pt['lmbda']:g}", str(pt["n"]), ms("psnr", 3), sv,
                          ms("mb", 4), ms("mask_on_fraction", 1, pct=True),
                          ms("gaussians_mean", 0), ms("anchors", 0)])
     if len(seeds) < 2:
@@ -915,6 +971,10 @@ def _one_thread_count(r: dict) -> Optional[int]:
 # A training time whose stall share (time the process ran on no core) exceeds this measures
 # the machine's load, not the method: a healthy one-thread run beside another measured 1%.
 STALL_LIMIT = 0.05
+# ... and whose stall time exceeds this many seconds: a short run's start-up (kernels loaded
+# from numba's cache, images read) stalls a few seconds on a quiet machine (a 100 s demo run:
+# 6 s, 6%), which is no load; a paused or core-sharing run stalls minutes.
+STALL_FLOOR_S = 30.0
 
 
 def stall_share(r: dict) -> Optional[float]:
@@ -926,9 +986,10 @@ def stall_share(r: dict) -> Optional[float]:
 
 
 def stalled(r: dict) -> bool:
-    """A run whose training time stalled beyond STALL_LIMIT: it measures no cost."""
+    """A run whose training time stalled beyond STALL_LIMIT of it and beyond STALL_FLOOR_S
+    seconds: it measures no cost."""
     sh = stall_share(r)
-    return sh is not None and sh > STALL_LIMIT
+    return sh is not None and sh > STALL_LIMIT and float(r["stall_s"]) > STALL_FLOOR_S
 
 
 def _stall_words(r: dict) -> str:
@@ -952,7 +1013,8 @@ def untimed(r: dict) -> Optional[str]:
 def train_time_pairs(results: dict, method: str, base: str) -> tuple[list, list]:
     """The (method run, baseline run) pairs whose training times compare: the same lambda and
     seed, each trained at one thread count throughout, the same count for both, neither
-    untimed (stalled beyond STALL_LIMIT of its time, or marked); and the method's runs whose
+    untimed (stalled beyond STALL_LIMIT of its time and STALL_FLOOR_S, or marked); and the
+    method's runs whose
     time does not compare with the baseline's run at their rate point, each as (run, why). A
     rate point the baseline has no run at is neither (nothing to compare with)."""
     pairs, left = [], []
@@ -981,19 +1043,40 @@ def train_time_pairs(results: dict, method: str, base: str) -> tuple[list, list]
     return pairs, left
 
 
+def train_time_ratio(results: dict, m: str, base: str) -> dict | None:
+    """The training-time ratio of ``m`` to ``base`` over the pairs of train_time_pairs only (a
+    mean over runs of other lambdas or thread counts would mix the schedule's cost with the
+    machine's): ``{ratio, mean_s, ref_mean_s, pairs}``, the ratio computed from the two means
+    it is printed beside; None without a pair."""
+    pairs, _ = train_time_pairs(results, m, base)
+    if not pairs:
+        return None
+    tm = sum(r["train_time_s"] for r, _ in pairs) / len(pairs)
+    tb = sum(b["train_time_s"] for _, b in pairs) / len(pairs)
+    return {"ratio": tm / tb, "mean_s": tm, "ref_mean_s": tb, "pairs": len(pairs)}
+
+
+def fps_ratio(results: dict, m: str) -> dict | None:
+    """The paired FPS measurement of ``m`` against the baseline (``results["fps_pair"]``) with
+    its ratio recomputed from the two FPS figures it is printed beside (records written before
+    kept the median of per-round ratios, which need not equal their ratio)."""
+    fp = (results.get("fps_pair") or {}).get(m)
+    if not fp or not fp.get("fps_ref"):
+        return None
+    return dict(fp, ratio=fp["fps"] / fp["fps_ref"])
+
+
 def _train_time_line(results: dict, m: str, base: str, name: str, bname: str) -> Optional[str]:
-    """The verdict's training-time ratio, over the pairs of train_time_pairs only: a mean over
-    runs of other lambdas or thread counts would mix the schedule's cost with the machine's."""
+    """The verdict's training-time ratio (:func:`train_time_ratio`) and the runs left out."""
     pairs, left = train_time_pairs(results, m, base)
     if not pairs:
         return None if not left else (
             f"{name}'s training time compares with no {bname} run (the same rate point, one "
             f"thread count throughout, the same for both)")
-    tm = sum(r["train_time_s"] for r, _ in pairs)
-    tb = sum(b["train_time_s"] for _, b in pairs)
+    tr = train_time_ratio(results, m, base)
     th = "/".join(str(t) for t in sorted({_one_thread_count(r) for r, _ in pairs}))
-    out = (f"{name} trains in {tm / tb:.2f}x {bname}'s time ({tm / len(pairs):.0f} s vs "
-           f"{tb / len(pairs):.0f} s per run; {len(pairs)} pair(s) at the same rate point, "
+    out = (f"{name} trains in {tr['ratio']:.2f}x {bname}'s time ({tr['mean_s']:.0f} s vs "
+           f"{tr['ref_mean_s']:.0f} s per run; {len(pairs)} pair(s) at the same rate point, "
            f"{th} thread(s) each")
     if left:
         out += "; left out: " + ", ".join(f"{_lam(r)} ({why})" for r, why in left)
@@ -1193,19 +1276,80 @@ def verdict_lines(results: dict) -> list[str]:
         if eq:
             lines.append(f"at equal lambda (not equal rate pressure), {name} vs {bname}: "
                          + "; ".join(eq))
-        fp = (results.get("fps_pair") or {}).get(m)
+        fp = fps_ratio(results, m)
         if fp:
             ratio = fp["ratio"]
+            spread = (f"; the per-round ratios {fp['ratio_rounds'][0]:.2f}-"
+                      f"{fp['ratio_rounds'][1]:.2f}" if fp.get("ratio_rounds") else "")
             lines.append(f"{name} renders at {ratio:.2f}x {bname}'s FPS ({'faster' if ratio > 1 else 'slower'}; "
                          f"decoded files timed in one process, {fp['rounds']} rounds, lambda "
-                         f"{fp['lmbda']:g}: {fp['fps']:.1f} vs {fp['fps_ref']:.1f} FPS, "
-                         f"{fp['threads']} thread(s))")
+                         f"{fp['lmbda']:g}: {fp['fps']:.1f} vs {fp['fps_ref']:.1f} FPS (median "
+                         f"over rounds), {fp['threads']} thread(s){spread})")
         tl = _train_time_line(results, m, base, name, bname)
         if tl:
             lines.append(tl)
     if results.get("scope"):
         lines.append(results["scope"])
     return lines
+
+
+def verdict_table(results: dict) -> Table | None:
+    """The verdict's opening table, one row per contender and the curve it is measured against
+    (the baseline, then each contender it extends): BD-rate and BD-PSNR (on the seed-mean
+    curves with seeds), its size and PSNR change at each lambda both have, the paired FPS ratio
+    (against the baseline) and the training-time ratio, each ratio beside the two values it is
+    computed from. None when the comparison has no contender with runs."""
+    base = results.get("baseline", "baseline")
+    seeds = seeds_of(results)
+    bd = {(b["method"], bd_against(results, b), b["seed"]): b
+          for b in (results.get("bd") or compute_bd(results))}
+    pairs = []
+    for m in method_names(results):
+        if m == base or not runs_of(results, m):
+            continue
+        pairs += [(m, ref) for ref in [base] + nested_references(results, m)
+                  if runs_of(results, ref)]
+    if not pairs:
+        return None
+    shared = {}
+    for m, ref in pairs:
+        rp = {p["lmbda"]: p for p in _curve_points(results, ref)}
+        shared[(m, ref)] = {p["lmbda"]: (p, rp[p["lmbda"]]) for p in _curve_points(results, m)
+                            if p["lmbda"] in rp}
+    lams = sorted({lm for v in shared.values() for lm in v})
+    rows = []
+    for m, ref in pairs:
+        b = bd.get((m, ref, "mean" if seeds else None)) or {}
+        cells = [label(results, m), label(results, ref),
+                 "-" if b.get("bd_rate") is None else f"{b['bd_rate']:+.1f}%",
+                 "-" if b.get("bd_psnr") is None else f"{b['bd_psnr']:+.3f} dB"]
+        for lm in lams:
+            pq = shared[(m, ref)].get(lm)
+            if pq is None:
+                cells.append("-")
+                continue
+            p, q = pq
+            cells.append(f"{_pct(_change(p['bytes'], q['bytes']))} / "
+                         f"{p['psnr'] - q['psnr']:+.3f} dB")
+        fp = fps_ratio(results, m) if ref == base else None
+        cells.append("-" if fp is None else
+                     f"{fp['ratio']:.2f}x ({fp['fps']:.1f} / {fp['fps_ref']:.1f} FPS)")
+        tr = train_time_ratio(results, m, ref)
+        cells.append("-" if tr is None else
+                     f"{tr['ratio']:.2f}x ({tr['mean_s']:.0f} / {tr['ref_mean_s']:.0f} s)")
+        rows.append(cells)
+    curve = (f"the seed-mean curves of {len(seeds)} seeds" if len(seeds) > 1 else
+             f"one seed ({seeds[0]})" if seeds else "one seed")
+    notes = [(f"Contender against the curve named in 'against', on {curve}: BD-rate (negative = "
+             "fewer bytes at equal PSNR) and BD-PSNR (positive = better at equal size); at each "
+             "lambda both have, the contender's size change and PSNR change against it (equal "
+             "lambda is not equal rate pressure); FPS: decoded files timed in one process "
+             "(median over rounds); training time: mean per run over the pairs of one rate "
+             "point and thread count. Each ratio = the first value in brackets / the second. "
+             "Caveats and readings below.")]
+    return Table("Verdict", ["contender", "against", "BD-rate", "BD-PSNR"]
+                 + [f"lambda {lm:g}: size / PSNR" for lm in lams]
+                 + ["FPS ratio", "training-time ratio"], rows, notes, left=2)
 
 
 def _missing_text(results: dict) -> str:
@@ -1228,9 +1372,13 @@ def format_report(results: dict, markdown: bool = False) -> str:
         if not results.get("complete", True):
             parts.append("\n**Incomplete comparison**: " + _missing_text(results))
         verdict = verdict_lines(results)
+        vt = verdict_table(results)
+        if vt is not None:
+            parts += ["", vt.markdown()]
         if verdict:
-            parts += ["", "### Verdict", ""] + [f"- {v}" if not v.startswith("  ") else f"  - {v.strip()}"
-                                                for v in verdict]
+            parts += ["", "### Verdict" if vt is None else "Caveats and readings:", ""]
+            parts += [f"- {v}" if not v.startswith("  ") else f"  - {v.strip()}"
+                      for v in verdict]
         for t in tables:
             parts += ["", t.markdown()]
         parts += ["", "### Protocol", ""] + [f"- **{k}**: {v}" for k, v in prot]
@@ -1254,14 +1402,18 @@ def format_report(results: dict, markdown: bool = False) -> str:
                 parts += ["", f"![lambda {p['lmbda']:g}, view {p['view']}]({rel.as_posix()})"]
                 if p.get("missing"):
                     parts.append(f"(not drawn, no model file: {', '.join(p['missing'])})")
-        parts += ["", "### Survey CSV", "",
-                  "`results.csv` beside this report holds these runs in the 3DGS compression "
-                  "survey's layout (Submethod, PSNR, SSIM, LPIPS, Size [Bytes], #Gaussians): one "
-                  "row per method and rate point" + (" and seed, then each point's seed mean"
-                                                     if seeds_of(results) else "")
-                  + ". #Gaussians counts the neural Gaussians the file codes (Gaussian masks on: "
-                  "every Gaussian a view of the decoded model can draw; its anchors x K before "
-                  "the masks); LPIPS is empty when it was not measured."]
+        parts += ["", "### CSV files", "",
+                  "`results.csv` beside this report: every run, one row each (method, lambda, "
+                  "seed, PSNR, SSIM with its convention, LPIPS, size, #Gaussians). "
+                  f"`survey/<method>/{survey_dataset(results)}/"
+                  f"{Path(results.get('scene', 'scene')).name}.csv`: each method's points in "
+                  "the 3DGS compression survey's layout (Submethod, PSNR, SSIM, LPIPS, Size "
+                  "[Bytes], #Gaussians; one file per method and scene, the highest and lowest "
+                  "rate named <method>-highrate / -lowrate, the others unnamed as the survey "
+                  "asks" + ("; seed means" if seeds_of(results) else "")
+                  + "). #Gaussians counts the neural Gaussians the file codes (Gaussian masks "
+                  "on: every Gaussian a view of the decoded model can draw); LPIPS is empty "
+                  "when it was not measured, SSIM when only scikit-image's was."]
         return "\n".join(parts) + "\n"
     parts = [t.text() for t in tables]
     if not results.get("complete", True):
@@ -1269,12 +1421,20 @@ def format_report(results: dict, markdown: bool = False) -> str:
     w = max(len(k) for k, _ in prot)
     parts.append("Protocol\n========\n" + "\n".join(f"{k.ljust(w)}  {v}" for k, v in prot))
     verdict = verdict_lines(results)
-    if verdict:          # last, where a terminal leaves the reader
+    vt = verdict_table(results)
+    if vt is not None:   # last, where a terminal leaves the reader
+        parts.append(vt.text() + ("\n\n" + "\n".join(verdict) if verdict else ""))
+    elif verdict:
         parts.append("Verdict\n=======\n" + "\n".join(verdict))
     return "\n\n".join(parts)
 
 
 SURVEY_COLUMNS = ["Submethod", "PSNR", "SSIM", "LPIPS", "Size [Bytes]", "#Gaussians"]
+# The survey's dataset folders, by the protocol patch that trains on each dataset
+SURVEY_DATASETS = {"tandt": "TanksAndTemples", "mip360": "MipNeRF360",
+                   "deepblending": "DeepBlending", "nerf-synthetic": "SyntheticNeRF"}
+RUNS_COLUMNS = ["Method", "lambda", "seed", "PSNR", "SSIM", "SSIM convention", "SSIM (skimage)",
+                "LPIPS", "Size [Bytes]", "#Gaussians"]
 
 
 def gaussians_count(row: dict) -> Optional[int]:
@@ -1284,46 +1444,104 @@ def gaussians_count(row: dict) -> Optional[int]:
     return int(m["on"]) if "on" in m else None
 
 
-def survey_rows(results: dict) -> list[dict]:
-    """The 3DGS compression survey's CSV layout (``SURVEY_COLUMNS``): one row per method and
-    rate point (per seed, then the seed mean, in a comparison with seeds). LPIPS empty when not
-    measured; #Gaussians: :func:`gaussians_count`."""
-    def fmt(v, nd):
-        return "" if v is None else f"{v:.{nd}f}"
+def survey_dataset(results: dict) -> str:
+    """The survey's dataset folder of a comparison: the dataset its protocol patch names
+    (``tandt`` -> TanksAndTemples, ...), else the name of the folder its scene lies in."""
+    for pt in results.get("common_patches") or ():
+        if pt in SURVEY_DATASETS:
+            return SURVEY_DATASETS[pt]
+    return Path(results.get("scene", "scenes")).parent.name or "scenes"
 
-    rows = []
-    for m in method_names(results):
-        for r in runs_of(results, m):
-            name = f"{label(results, m)} lambda={r['lmbda']:g}" + (f" seed={r['seed']}" if r.get("seed") is not None
-                                                   else "")
-            g = gaussians_count(r)
-            rows.append({"Submethod": name, "PSNR": fmt(r["psnr"], 4), "SSIM": fmt(r["ssim"], 4),
-                         "LPIPS": fmt(r.get("lpips"), 4), "Size [Bytes]": str(int(r["bytes"])),
-                         "#Gaussians": "" if g is None else str(g)})
-        for pt in seed_mean_points(results, m):
-            if pt["n"] < 2:      # one seed: its row above is the point
-                continue
-            rs = [r for r in runs_of(results, m) if r["lmbda"] == pt["lmbda"]]
+
+def _full(v) -> str:
+    """A measurement at full precision (the survey rounds it when it takes it in)."""
+    return "" if v is None else f"{v:.6f}"
+
+
+def survey_rows(results: dict, method: str) -> list[dict]:
+    """One method's rows in the 3DGS compression survey's CSV layout (``SURVEY_COLUMNS``): its
+    rate points by lambda, highest rate first (the seed means in a comparison with seeds, a
+    lambda once every seed has finished). The survey's naming rules: it shows at most two
+    named submethods per method (unnamed rows only in its plots) and drops the method's name
+    in front of a submethod name, so one point is named by the method alone, and of several the
+    highest and lowest rate ``<method>-highrate`` and ``<method>-lowrate``, the others
+    unnamed. SSIM: 3DGS's (empty where only scikit-image's was measured); LPIPS empty when
+    not measured; #Gaussians: :func:`gaussians_count`."""
+    name = label(results, method)
+    seeded = bool(seeds_of(results))
+    pts = []
+    if seeded:
+        for pt in seed_mean_points(results, method):
+            rs = [r for r in runs_of(results, method) if r["lmbda"] == pt["lmbda"]]
             lp = [r.get("lpips") for r in rs]
             gs = [gaussians_count(r) for r in rs]
-            rows.append({"Submethod": f"{label(results, m)} lambda={pt['lmbda']:g} (mean of {pt['n']} seeds)",
-                         "PSNR": fmt(pt["psnr"], 4), "SSIM": fmt(pt["ssim"], 4),
-                         "LPIPS": "" if None in lp else fmt(sum(lp) / len(lp), 4),
-                         "Size [Bytes]": f"{pt['bytes']:.1f}",
-                         "#Gaussians": "" if None in gs else f"{sum(gs) / len(gs):.1f}"})
+            pts.append({"lmbda": pt["lmbda"], "psnr": pt["psnr"],
+                        "ssim": pt["ssim"] if pt.get("ssim_convention") == "3dgs" else None,
+                        "lpips": None if None in lp else sum(lp) / len(lp),
+                        "bytes": f"{pt['bytes']:.1f}" if pt["n"] > 1 else str(int(pt["bytes"])),
+                        "gaussians": "" if None in gs else (f"{sum(gs) / len(gs):.1f}"
+                                                            if len(gs) > 1 else str(gs[0]))})
+    else:
+        for r in runs_of(results, method):
+            g = gaussians_count(r)
+            pts.append({"lmbda": r["lmbda"], "psnr": r["psnr"], "ssim": field_ssim(r),
+                        "lpips": r.get("lpips"), "bytes": str(int(r["bytes"])),
+                        "gaussians": "" if g is None else str(g)})
+    pts.sort(key=lambda p: p["lmbda"])
+    rows = []
+    for i, p in enumerate(pts):
+        sub = (name if len(pts) == 1 else f"{name}-highrate" if i == 0
+               else f"{name}-lowrate" if i == len(pts) - 1 else "")
+        rows.append({"Submethod": sub, "PSNR": _full(p["psnr"]), "SSIM": _full(p["ssim"]),
+                     "LPIPS": _full(p["lpips"]), "Size [Bytes]": p["bytes"],
+                     "#Gaussians": p["gaussians"]})
     return rows
 
 
-def write_survey_csv(results: dict, path: str | Path) -> Path:
+def _write_csv(rows: list[dict], columns: list[str], path) -> Path:
     import csv
     import io
 
     buf = io.StringIO()
-    w = csv.DictWriter(buf, fieldnames=SURVEY_COLUMNS, lineterminator="\n")
+    w = csv.DictWriter(buf, fieldnames=columns, lineterminator="\n")
     w.writeheader()
-    w.writerows(survey_rows(results))
+    w.writerows(rows)
     write_text_atomic(path, buf.getvalue())
     return Path(path)
+
+
+def write_survey(results: dict, folder: str | Path, dataset: str | None = None,
+                 scene: str | None = None) -> list[Path]:
+    """The survey's files, one per method and scene: ``folder/<method>/<Dataset>/<scene>.csv``
+    (each method's folder is laid out as the survey asks a method's ``results/`` to be;
+    :func:`survey_rows`). ``dataset`` defaults to :func:`survey_dataset`, ``scene`` to the
+    scene folder's name."""
+    dataset = dataset or survey_dataset(results)
+    scene = scene or Path(results.get("scene", "scene")).name
+    out = []
+    for m in method_names(results):
+        rows = survey_rows(results, m)
+        if rows:
+            out.append(_write_csv(rows, SURVEY_COLUMNS,
+                                  Path(folder) / label(results, m) / dataset / f"{scene}.csv"))
+    return out
+
+
+def runs_rows(results: dict) -> list[dict]:
+    """Every run of the comparison, one row each (``RUNS_COLUMNS``, ``results.csv``): the
+    method as the report names it, lambda, seed, and the decoded file's measurements, SSIM with
+    its convention."""
+    rows = []
+    for r in ordered_runs(results):
+        g = gaussians_count(r)
+        rows.append({"Method": label(results, r["method"]), "lambda": f"{r['lmbda']:g}",
+                     "seed": "" if r.get("seed") is None else str(r["seed"]),
+                     "PSNR": _full(r["psnr"]), "SSIM": _full(r.get("ssim")),
+                     "SSIM convention": ssim_convention(r),
+                     "SSIM (skimage)": _full(r.get("ssim_skimage")),
+                     "LPIPS": _full(r.get("lpips")), "Size [Bytes]": str(int(r["bytes"])),
+                     "#Gaussians": "" if g is None else str(g)})
+    return rows
 
 
 def write_report(results: dict, out_dir: str | Path, plots: bool = True,
@@ -1344,7 +1562,9 @@ def write_report(results: dict, out_dir: str | Path, plots: bool = True,
         results["panels"] = write_panels(results, out_dir, panel_views)
         for i, p in enumerate(results["panels"]):
             paths[f"panel{i}"] = Path(p["panel"])
-    paths["csv"] = write_survey_csv(results, out_dir / "results.csv")
+    paths["csv"] = _write_csv(runs_rows(results), RUNS_COLUMNS, out_dir / "results.csv")
+    for i, f in enumerate(write_survey(results, out_dir / "survey")):
+        paths[f"survey{i}"] = f
     md = out_dir / "report.md"
     write_text_atomic(md, format_report(results, markdown=True))
     paths["report"] = md

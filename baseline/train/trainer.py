@@ -42,6 +42,44 @@ from baseline.train.losses import lr_exp, reconstruction_loss
 
 CHECKPOINT_NAME = "checkpoint.pt"
 TRAIN_LOG_NAME = "train_log.jsonl"
+TENSORBOARD_DIR = "tb"
+TENSORBOARD_MISSING = ("train.tensorboard = true needs the tensorboard package: pip install -e "
+                       ".[tensorboard] (or pip install tensorboard)")
+
+
+class TensorBoardLog:
+    """The training curves in TensorBoard (``train.tensorboard``; ``RUN/tb/``), written with
+    PyTorch's ``SummaryWriter`` every ``train.log_every`` iterations: the loss and its terms,
+    the training PSNR, the rate term's bits per anchor (HAC's coding phase), anchors, Gaussians
+    drawn and each parameter group's learning rate. A resumed run purges what was logged past
+    its checkpoint, so the curves stay one run."""
+
+    def __init__(self, folder: Path, iteration: int):
+        try:
+            from torch.utils.tensorboard import SummaryWriter
+        except ImportError:
+            raise ValueError(TENSORBOARD_MISSING) from None
+        self.writer = SummaryWriter(log_dir=str(folder),
+                                    purge_step=iteration + 1 if iteration > 0 else None)
+
+    def log(self, it: int, terms: dict, trainer: "Trainer") -> None:
+        w = self.writer
+        for key in ("loss", "l1", "psnr"):
+            if key in terms:
+                w.add_scalar(f"train/{key}", float(terms[key]), it)
+        for key, v in terms.items():        # the rate's and the masks' terms
+            if key not in ("loss", "l1", "psnr", "gaussians", "bpp") and isinstance(v, (int, float)):
+                w.add_scalar(f"terms/{key}", float(v), it)
+        if "bpp" in terms:                  # bits per coded value x coded values per anchor
+            w.add_scalar("rate/bits_per_anchor", float(terms["bpp"]) * trainer.rate_values_per_anchor, it)
+            w.add_scalar("rate/bits_per_value", float(terms["bpp"]), it)
+        w.add_scalar("model/anchors", trainer.model.n_anchors, it)
+        w.add_scalar("model/gaussians", int(terms.get("gaussians", 0)), it)
+        for g in trainer.optimizer.param_groups:
+            w.add_scalar(f"lr/{g.get('name', 'group')}", float(g["lr"]), it)
+
+    def close(self) -> None:
+        self.writer.close()
 
 
 class NonFiniteError(ValueError):
@@ -333,6 +371,16 @@ class Trainer:
 
     def _train_loop(self, total: int, ck: int, stop) -> dict:
         cfg = self.cfg
+        tb = (TensorBoardLog(self.out / TENSORBOARD_DIR, self.iteration) if cfg.train.tensorboard
+              else None)
+        try:
+            return self._train_steps(total, ck, stop, tb)
+        finally:
+            if tb is not None:
+                tb.close()
+
+    def _train_steps(self, total: int, ck: int, stop, tb: Optional[TensorBoardLog]) -> dict:
+        cfg = self.cfg
         with tqdm(total=total, initial=self.iteration, desc="train", disable=not self.progress,
                   dynamic_ncols=True) as bar, self._open_log() as log:
             last = {}
@@ -371,6 +419,8 @@ class Trainer:
                                           "anchors": self.model.n_anchors, "phase": self.phase},
                                          default=float) + "\n")
                     log.flush()
+                    if tb is not None:
+                        tb.log(it, terms, self)
                 bar.update(1)
                 if stop.requested and it < total:
                     path = self.save_checkpoint()
