@@ -226,10 +226,10 @@ def cmd_view(args) -> int:
     v = serve(args.target, scene=args.scene, host=args.host, port=args.port, device=args.device)
     # a service manager's stop is Ctrl+C's (set after the scene is read: pycolmap's logging
     # installs a SIGTERM handler of its own when it loads)
-    signal.signal(signal.SIGTERM, stop)
-    print(f"viewer of {args.target}: {v.url} (training cameras grey, test cameras orange; "
-          f"Ctrl+C to stop)", flush=True)
-    try:
+    try:                         # the URL is printed inside: a stop right after it is a stop
+        signal.signal(signal.SIGTERM, stop)
+        print(f"viewer of {args.target}: {v.url} (training cameras grey, test cameras orange; "
+              f"Ctrl+C to stop)", flush=True)
         while True:
             time.sleep(3600)
     except KeyboardInterrupt:
