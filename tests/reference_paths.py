@@ -7,7 +7,8 @@ checkpoints bit for bit.
 
 * hash-grid float kernels: the point-by-point loop of ``reference_grid_kernels``, on the
   binarized table of :class:`~baseline.hac.hashgrid.STEBinary`'s forward, and its backward
-  as a ``torch.where``.
+  as a ``torch.where``; the hash bits' count of ones and straight-through gradient as the
+  ``torch`` ops they replace.
 """
 from __future__ import annotations
 
@@ -41,12 +42,21 @@ def _grid_bwd(u, gout, res, rows, offsets, kinds, strides, gtable, nparts):
     R.grid_bwd(u, gout, res, rows, offsets, _hashed(kinds), strides, gtable, nparts)
 
 
+def _count_nonneg(params):
+    return int((torch.from_numpy(params) >= 0).sum())
+
+
+def _ste_fill(params, g, out):
+    out[...] = torch.where(torch.from_numpy(params).abs() <= 1.0, torch.tensor(g), 0.0).numpy()
+
+
 @contextlib.contextmanager
 def reference_paths():
     """Every fast path replaced by its reference form inside the block."""
     with contextlib.ExitStack() as stack:
         for mod, name, ref in ((K, "grid_fwd", _grid_fwd), (K, "grid_bwd", _grid_bwd),
-                               (K, "ste_mask", _ste_mask)):
+                               (K, "ste_mask", _ste_mask), (K, "count_nonneg", _count_nonneg),
+                               (K, "ste_fill", _ste_fill)):
             old = getattr(mod, name)
             setattr(mod, name, ref)
             stack.callback(setattr, mod, name, old)

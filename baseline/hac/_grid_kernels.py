@@ -366,6 +366,28 @@ def ste_mask(params, grad):
                 grad[r, k] = 0.0
 
 
+@njit(cache=True, parallel=True, error_model="numpy")
+def count_nonneg(params):
+    """The number of entries of ``params`` [R, F] that are >= 0 (their binarization's ones)."""
+    R, F = params.shape
+    n = 0
+    for r in prange(R):
+        for k in range(F):
+            if params[r, k] >= 0:
+                n += 1
+    return n
+
+
+@njit(cache=True, parallel=True, error_model="numpy")
+def ste_fill(params, g, out):
+    """``out`` [R, F] = ``g`` where ``|params| <= 1``, else 0 (NaN: 0): the straight-through
+    gradient of a term that depends on the entries through the count of ones only."""
+    R, F = params.shape
+    for r in prange(R):
+        for k in range(F):
+            out[r, k] = g if abs(params[r, k]) <= 1.0 else np.float32(0.0)
+
+
 # ------------------------------------------------------------------ exact (coding) path
 _WEIGHT_ONE = 32768  # 2^WEIGHT_BITS (hashgrid.WEIGHT_BITS = 15)
 

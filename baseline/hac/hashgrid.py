@@ -120,7 +120,7 @@ class _TableBits(torch.autograd.Function):
     @staticmethod
     def forward(ctx, *tables):
         n = sum(t.numel() for t in tables)
-        count = sum(int((t >= 0).sum()) for t in tables)
+        count = sum(_count_nonneg(t) for t in tables)
         n1 = torch.tensor(float(count), dtype=tables[0].dtype, device=tables[0].device)
         ctx.save_for_backward(*tables)
         ctx.n1, ctx.n = n1, n
@@ -132,7 +132,31 @@ class _TableBits(torch.autograd.Function):
             n1 = ctx.n1.detach().requires_grad_(True)
             (g_n1,) = torch.autograd.grad(_bits_of_count(n1, ctx.n), n1, grad)
         g = g_n1 / 2
-        return tuple(torch.where(t.abs() <= 1.0, g, 0.0) for t in ctx.saved_tensors)
+        return tuple(_ste_fill(t, g) for t in ctx.saved_tensors)
+
+
+def _count_nonneg(t: torch.Tensor) -> int:
+    """``int((t >= 0).sum())``; one numba pass over a float32 CPU table."""
+    if _BACKEND != "torch" and t.device.type == "cpu" and t.dtype == torch.float32 and t.ndim == 2:
+        K, cpu = _grid_kernels()
+        with cpu._RUN_LOCK:
+            cpu._apply_threads()
+            return int(K.count_nonneg(t.detach().contiguous().numpy()))
+    return int((t >= 0).sum())
+
+
+def _ste_fill(t: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
+    """``torch.where(t.abs() <= 1.0, g, 0.0)`` (``g`` a scalar tensor); one numba pass over a
+    float32 CPU table."""
+    if (_BACKEND != "torch" and t.device.type == "cpu" and t.dtype == torch.float32
+            and t.ndim == 2 and g.dtype == torch.float32):
+        K, cpu = _grid_kernels()
+        out = np.empty(tuple(t.shape), dtype=np.float32)
+        with cpu._RUN_LOCK:
+            cpu._apply_threads()
+            K.ste_fill(t.detach().contiguous().numpy(), np.float32(g.item()), out)
+        return torch.from_numpy(out)
+    return torch.where(t.abs() <= 1.0, g, 0.0)
 
 
 def table_bits(tables) -> torch.Tensor:
@@ -720,7 +744,7 @@ def warm_kernels() -> None:
     g = BinaryHashGrid(resolutions_3d=(4, 16), log2_table_3d=6, resolutions_2d=(4, 16),
                        log2_table_2d=6)
     x = torch.rand(64, 3, generator=torch.Generator().manual_seed(0))
-    g(x).sum().backward()
+    (g(x).sum() + g.hash_bits()).backward()
     g(x, exact=True)
 
 
