@@ -292,7 +292,7 @@ def test_sfp_training_semantics_changes_only_predict_gs_hashes():
 
     from baseline.config import component_semantics, config_hash
 
-    root = Path(__file__).parent.parent / "docs/examples/truck-r4-cpu-s2/runs"
+    root = Path(__file__).parent.parent / "tests/data/archived/truck-r4-cpu-s2/runs"
     assert component_semantics(build_config(["cpu"])) == {}
     assert component_semantics(build_config(["cpu", "predict-gs"])) == {"feature_provider.sfp": 4}
     for d in root.iterdir():
