@@ -4,7 +4,7 @@ import shutil
 import pytest
 import torch
 
-from baseline.codec.model_codec import encode_model
+from baseline.modelfile import encode_model
 from baseline.config import build_config
 from baseline.data.scene import load_scene
 from baseline.data.synthetic import make_scene

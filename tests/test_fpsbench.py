@@ -6,7 +6,7 @@ import statistics
 import pytest
 import torch
 
-from baseline.codec.model_codec import decode_model
+from baseline.modelfile import decode_model
 from baseline.data.scene import load_scene
 from baseline.eval import fpsbench
 from baseline.eval.evaluate import evaluate

@@ -16,7 +16,7 @@ def test_hostile_files_are_refused_cleanly(decoded_files, tmp_path):
     import dataclasses
     import json
 
-    from baseline.codec.model_codec import encode_model
+    from baseline.modelfile import encode_model
     from baseline.run import load_run
 
     files = {name: (decoded_files[name] / "model.pgs").read_bytes()
@@ -51,7 +51,7 @@ def test_hostile_lattice_position_files_are_refused_cleanly(decoded_files, tmp_p
     import dataclasses
     import json
 
-    from baseline.codec.model_codec import encode_model
+    from baseline.modelfile import encode_model
     from baseline.run import load_run
 
     run = decoded_files["baseline"]

@@ -79,7 +79,7 @@ def test_hacpp_rate_over_all_anchors_with_anchor_masks(scene, tmp_path):
                                      ["predict-gs", "masks-hacpp", "entropy-hacpp"],
                                      ["predict-gs", "masks-hacpp"]])
 def test_training_and_exact_coding_with_hacpps_masks(small_scene, tmp_path, patches):
-    from baseline.codec.model_codec import decode_model, encode_model
+    from baseline.modelfile import decode_model, encode_model
     torch.set_num_threads(1)
     t = Trainer(demo_cfg(150, patches=patches), load_scene(small_scene), tmp_path / "r",
                 progress=False)

@@ -172,7 +172,7 @@ def test_allocation_failures_become_one_named_line():
 
 def test_the_cli_names_allocation_failures_and_keeps_internal_error_for_bugs(
         decoded_files, tmp_path, monkeypatch, capsys):
-    import baseline.codec.model_codec as mc
+    import baseline.modelfile as mc
 
     f = decoded_files["noscene"]
 
@@ -252,7 +252,7 @@ def test_anchors_far_outside_the_scene_are_refused(run_copy, key, value, what, c
 
 def test_a_file_far_outside_its_scene_is_refused_at_encode_and_decode(decoded_files, tmp_path,
                                                                     capsys):
-    from baseline.codec.model_codec import encode_model
+    from baseline.modelfile import encode_model
     from baseline.data.scene import load_scene, scene_bounds
     from baseline.run import load_run
 

@@ -34,7 +34,7 @@ from baseline.camera import Camera  # noqa: E402
 
 
 def export(src: str, out: str) -> None:
-    from baseline.codec.model_codec import decode_model
+    from baseline.modelfile import decode_model
     from baseline.eval.fpsbench import resolve_model_file
     from baseline.run import load_scene_for
 
@@ -52,7 +52,7 @@ def export(src: str, out: str) -> None:
 def _load(cams_file: str, runs, device: str):
     """The exported cameras, background and device, and each file decoded once (CPU codec)
     and moved there, labelled by its name (a run folder's model.pgs: the folder's)."""
-    from baseline.codec.model_codec import decode_model
+    from baseline.modelfile import decode_model
     from baseline.device import resolve_device
     from baseline.eval.fpsbench import resolve_model_file
 

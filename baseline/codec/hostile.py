@@ -341,7 +341,7 @@ def _worker() -> None:
     from baseline import registry
     from baseline.cli import main as cli_main
     from baseline.codec.container import BitstreamError
-    from baseline.codec.model_codec import decode_model
+    from baseline.modelfile import decode_model
 
     torch.set_num_threads(1)
     registry.ensure_loaded()

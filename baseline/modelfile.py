@@ -14,8 +14,8 @@ Sections (each with length + CRC32 in the container, DESIGN.md "Bitstream"):
                          grids hold every entry (codec.grids = "all", HAC's) or only those the
                          decoded anchors read ("used", BinaryHashGrid.used_values)
     decoder.weights      the opacity / covariance / colour MLPs
-    provider.*           what the feature provider owns (Predict-GS: its SFP grid and fusion MLP)
-    refiner.weights      the refiner's networks (Predict-GS: MGRD)
+    provider.*           what the feature provider owns (its hash grids and networks, if any)
+    refiner.weights      the refiner's networks
     <attribute>          each coded attribute (feat or residual, scaling, offsets), range coded
 
 Only valid anchors (any Gaussian mask on) are stored. Network weights are rounded to the stored
@@ -23,8 +23,8 @@ precision (``codec.weight_dtype``) before anything is coded, so the encoder's pr
 renders are the decoder's. The reported size is the file's byte count.
 
 Size groups (``pgs info``): ``feature`` = the provider's own coded attribute(s) and every section
-the provider owns (HAC: feat; Predict-GS: SFP grid + fusion MLP + residual), as the paper's
-Table 3; the rest is split into anchor, scaling, offsets, hash, masks, mlps, header.
+the provider owns (HAC: feat; a predicting provider: its grid, networks and residual), as
+Predict-GS's paper splits sizes in its Table 3; the rest is split into anchor, scaling, offsets, hash, masks, mlps, header.
 """
 from __future__ import annotations
 
@@ -37,8 +37,10 @@ import numpy as np
 import torch
 import torch.nn as nn
 
+from baseline import registry
 from baseline.codec.container import BitstreamError, read_container_sized, write_container
-from baseline.codec.header import CODING_DEFAULTS, check_header, digest_sections, memory_budget
+from baseline.codec.format import CODING_DEFAULTS, FORMAT, GRID_CODINGS
+from baseline.codec.header import check_header, digest_sections, memory_budget
 from baseline.codec.masks import decode_mask_patterns, encode_mask_patterns, mask_pattern_counts
 from baseline.codec.lattice import (decode_lattice, encode_lattice, lattice_coordinates,
                                     lattice_positions)
@@ -48,17 +50,17 @@ from baseline.codec.rangecoder import (anchor_bounds, bernoulli_counts, decode_b
                                        quantize_positions, unpack_positions)
 from baseline.codec.weights import (declare_precision, expect_precision, pack_state_dict,
                                     round_module_, unpack_state_dict)
-from baseline.config import GRID_CODINGS
+from baseline.config import ConfigError, apply_overlay, default_config, to_dict, validate
 from baseline.contracts import feature_cache
-
-FORMAT = "pgs-anchor-model"
+from baseline.hac.entropy import build_entropy_model
+from baseline.hac.hashgrid import BinaryHashGrid
+from baseline.memory import AllocationError, describe, is_allocation_failure
+from baseline.scaffold.model import AnchorModel, check_bounds
 CODER_FLOOR = 2.0 ** -24     # the least probability constriction's leaky quantizer gives a bin
 MASK_LOGIT = 20.0      # decoded masks as logits: sigmoid(+-20) is unambiguously on / off
 
 
 def _grid_modules(module: nn.Module):
-    from baseline.hac.hashgrid import BinaryHashGrid
-
     return [(n, m) for n, m in module.named_modules() if isinstance(m, BinaryHashGrid)]
 
 
@@ -89,9 +91,10 @@ def _has_state(provider) -> bool:
 def _module_states(model) -> dict:
     """Construction state that plugged-in modules keep in the header (``codec_state()``, JSON):
     what the decoder needs besides the config, e.g. a grid layout sized during training."""
-    return {name: mod.codec_state() for name, mod in (("provider", model.provider),
-                                                       ("refiner", model.refiner))
-            if mod is not None and hasattr(mod, "codec_state")}
+    states = {name: mod.codec_state() for name, mod in (("provider", model.provider),
+                                                         ("refiner", model.refiner))
+              if mod is not None}
+    return {name: st for name, st in states.items() if st is not None}
 
 
 def _factory(cls, cfg, state):
@@ -138,9 +141,6 @@ def encode_model(cfg, model, entropy, path: str | Path, extra_header: Optional[d
     ``scene_bounds`` ``(centre [3], extent)`` (:func:`baseline.data.scene.scene_bounds`), far
     outside it (:func:`baseline.scaffold.model.check_bounds`).
     """
-    from baseline.config import to_dict
-    from baseline.scaffold.model import check_bounds
-
     check_bounds(model, f"encoding {path}", *(scene_bounds or ()))
 
     t0 = time.perf_counter()
@@ -236,8 +236,7 @@ def rate_check(model, entropy, stats: dict) -> list[dict]:
     gmask = (torch.sigmoid(model.per_anchor["mask"].detach()[idx][..., 0]) > model.mask_threshold)
     est = entropy.estimate_bits(xyz_q, model.coded_values(idx), gmask.float())
     rows = [(name, bits) for name, bits in est.items()]
-    if hasattr(entropy, "grid"):
-        rows.append(("em.grid", float(entropy.grid.hash_bits())))
+    rows += [(f"em.{name}", float(g.hash_bits())) for name, g in _grid_modules(entropy)]
     rows += [(f"provider.{name or 'grid'}", float(g.hash_bits())) for name, g in _grid_modules(model.provider)]
     return [{"section": n, "estimated_bytes": b / 8.0, "written_bytes": int(written[n])}
             for n, b in rows if n in written]
@@ -276,8 +275,6 @@ def decode_model(path: str | Path, max_bytes: Optional[int] = None) -> DecodedMo
     fails all the same (a budget raised beyond the machine, an address-space limit) is one
     :class:`baseline.memory.AllocationError` naming the file, the size, the plan and budget.
     """
-    from baseline.memory import AllocationError, describe, is_allocation_failure
-
     plan: dict = {}
     try:
         with expect_precision(None):          # declared once the header is read
@@ -294,10 +291,6 @@ def decode_model(path: str | Path, max_bytes: Optional[int] = None) -> DecodedMo
 
 
 def _decode_model(path, max_bytes, plan: dict) -> DecodedModel:
-    from baseline import registry
-    from baseline.config import ConfigError, apply_overlay, default_config, validate
-    from baseline.hac.entropy import build_entropy_model
-    from baseline.scaffold.model import AnchorModel
 
     t0 = time.perf_counter()
     header, sections, size = read_container_sized(path)
@@ -436,11 +429,8 @@ def section_group(name: str, header: dict) -> str:
 def section_label(name: str, header: dict) -> str:
     """What a section holds, named by the component that owns it (``pgs info``, reports):
     ``provider.*`` / ``refiner.*`` / ``em.*`` by the registered provider, refiner and entropy
-    model of the file (their ``SECTION_LABELS``: Predict-GS's ``sfp.grid``, ``sfp.fusion``,
-    ``mgrd``; HAC's ``hac.grid``, ``hac.mlp``), ``decoder.weights`` as ``decoder``; the
+    model of the file (their ``SECTION_LABELS``, e.g. HAC's ``hac.grid``, ``hac.mlp``), ``decoder.weights`` as ``decoder``; the
     others (positions, masks, the coded attributes) by their own names."""
-    from baseline import registry
-
     if name == "decoder.weights":
         return "decoder"
     cfg = header.get("config") if isinstance(header.get("config"), dict) else {}
