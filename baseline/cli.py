@@ -239,7 +239,7 @@ def cmd_view(args) -> int:
 
 
 def cmd_encode(args) -> int:
-    from baseline.codec.model_codec import file_info, format_info, format_rate_check, rate_check
+    from baseline.modelfile import file_info, format_info, format_rate_check, rate_check
     from baseline.run import encode_run
 
     codec = {"weight_dtype": args.weights, "positions": args.positions, "masks": args.masks,
@@ -261,7 +261,7 @@ def cmd_decode(args) -> int:
 
     import torch
 
-    from baseline.codec.model_codec import decode_model
+    from baseline.modelfile import decode_model
     from baseline.contracts import feature_cache
     from baseline.eval.export import export_run_ply, export_sh_ply
     from baseline.eval.metrics import format_psnr
@@ -343,7 +343,7 @@ def cmd_decode(args) -> int:
 
 
 def cmd_info(args) -> int:
-    from baseline.codec.model_codec import file_info, format_info
+    from baseline.modelfile import file_info, format_info
 
     info = file_info(args.file)
     h = info["header"]

@@ -131,7 +131,7 @@ def test_bad_input_gives_a_named_error(trained, tmp_path, capsys):
 
 
 def test_encode_with_float16_weights(trained, capsys):
-    from baseline.codec.model_codec import decode_model, file_info
+    from baseline.modelfile import decode_model, file_info
 
     d, _, run = trained
     f32, f16 = d / "w32.pgs", d / "w16.pgs"
@@ -150,7 +150,7 @@ def test_encode_with_float16_weights(trained, capsys):
 
     import torch
 
-    from baseline.codec.model_codec import encode_model
+    from baseline.modelfile import encode_model
     from baseline.run import load_run
     t, _ = load_run(run, device="cpu")
     cfg = dataclasses.replace(t.cfg, codec=dataclasses.replace(t.cfg.codec, weight_dtype="float16"))

@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from baseline.codec.container import read_container
-from baseline.codec.model_codec import coded_bits_per_anchor, decode_model
+from baseline.modelfile import coded_bits_per_anchor, decode_model
 from baseline.data.images import read_image
 from baseline.data.scene import load_scene
 from baseline.eval.panel import bit_map, view_panel

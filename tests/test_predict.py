@@ -151,7 +151,7 @@ def test_auto_sized_sfp_decodes_after_the_anchor_count_changed(tmp_path):
     """With predict.grid_auto the SFP grid is sized from the anchors at the start of training;
     the file keeps that layout (codec_state), so a model whose anchor count changed since (growing)
     decodes to the same grid and the same predicted features."""
-    from baseline.codec.model_codec import decode_model, encode_model, file_info
+    from baseline.modelfile import decode_model, encode_model, file_info
     from baseline.scaffold.build import build_entropy
 
     torch.set_num_threads(1)
@@ -336,7 +336,7 @@ def test_contracted_sfp_box_is_the_inner_quantiles_and_decodes_the_same(tmp_path
     positions inside map linearly onto the middle half of the grid, far ones into the outer
     shell (never outside [0, 1)), continuously at the box face; a decoded model reads the same
     f_c (the flag comes from the config, the bounds from the file)."""
-    from baseline.codec.model_codec import decode_model, encode_model
+    from baseline.modelfile import decode_model, encode_model
     from baseline.hac.hashgrid import contract_unit
     from baseline.scaffold.build import build_entropy
 

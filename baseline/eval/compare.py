@@ -421,7 +421,7 @@ def _write_record(spec: RunSpec, record: dict) -> None:
 
 def _stage_encode(spec: RunSpec, scene_path: str, record: dict,
                   codec: Optional[dict] = None) -> None:
-    from baseline.codec.model_codec import encode_model, file_info
+    from baseline.modelfile import encode_model, file_info
     from baseline.config import CodecConfig
     from baseline.run import file_header, load_run
 
@@ -446,7 +446,7 @@ def _stage_encode(spec: RunSpec, scene_path: str, record: dict,
 
 def _add_file_counts(enc: dict, info: dict) -> None:
     """Counts read from the file (not measurements): masks on and, per coded attribute, the
-    values coded and bits per value (:func:`baseline.codec.model_codec.coded_elements`)."""
+    values coded and bits per value (:func:`baseline.modelfile.coded_elements`)."""
     enc["attributes"] = info.get("attributes", [])
     enc["masks_on"] = info.get("masks_on")
 
@@ -454,7 +454,7 @@ def _add_file_counts(enc: dict, info: dict) -> None:
 def _fill_file_counts(spec: RunSpec, record: dict) -> bool:
     """Records written before the counts existed get them from the model file, when it is still
     there and is the one recorded (same size). Returns whether the record changed."""
-    from baseline.codec.model_codec import file_info
+    from baseline.modelfile import file_info
 
     enc = record.get("encode") or {}
     pgs = spec.dir / MODEL_FILE
@@ -466,7 +466,7 @@ def _fill_file_counts(spec: RunSpec, record: dict) -> bool:
 
 def _stage_decoded(spec: RunSpec, scene_path: str, record: dict, lpips_fn,
                    lpips: Optional[str]) -> None:
-    from baseline.codec.model_codec import decode_model
+    from baseline.modelfile import decode_model
     from baseline.device import device_name, resolve_device
     from baseline.eval.evaluate import evaluate
     from baseline.render import resolve_backend

@@ -4,7 +4,7 @@ For a test view and a rate point, from each method's decoded ``.pgs`` file:
 
 * its render and its per-pixel error against the ground truth (mean absolute error over RGB on
   uint8 images, in 0..255 grey levels; one colour scale for every method of the panel);
-* its bit map: each anchor's coded bits (:func:`baseline.codec.model_codec.coded_bits_per_anchor`:
+* its bit map: each anchor's coded bits (:func:`baseline.modelfile.coded_bits_per_anchor`:
   its coded attributes' information content under the file's own probabilities) added at the
   pixel its centre projects to, for the anchors that pass the prefilter of this view and land
   in the image (one colour scale, in bits per pixel). The map's total is those anchors' bits:
@@ -70,7 +70,7 @@ def view_panel(entries: list[tuple[str, Path]], scene, view: int, out_dir: Path,
                title: str = "") -> dict:
     """One panel for test view ``view`` from decoded files ``[(label, path)]``; returns
     ``{"panel": path, "images": {...}, "bits_shown": {label: total}, "error_vmax": ...}``."""
-    from baseline.codec.model_codec import coded_bits_per_anchor, decode_model
+    from baseline.modelfile import coded_bits_per_anchor, decode_model
     from baseline.eval.metrics import to_uint8
     from baseline.pipeline import render_view
 
@@ -208,7 +208,7 @@ def write_panels(results: dict, out_dir: str | Path, views: Optional[list[int]] 
         if not entries:
             continue
         if scene is None:
-            from baseline.codec.model_codec import decode_model
+            from baseline.modelfile import decode_model
 
             cfg = decode_model(entries[0][1]).cfg
             scene = load_scene_for(cfg, results["scene"], progress=False)

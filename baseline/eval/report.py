@@ -25,6 +25,7 @@ import math
 from pathlib import Path
 from typing import Callable, Optional
 
+from baseline.config import method_specs, patch_infos, patch_labels
 from baseline.eval.bdrate import (BDError, bd_psnr, bd_rate, non_monotone, overlap, psnr_at_rate,
                                   rate_at_psnr)
 from baseline.fileio import write_text_atomic
@@ -41,34 +42,43 @@ BD_THIN_OVERLAP = 1.0 / 3.0
 # ------------------------------------------------------------------------------ names
 # What users call the methods. A comparison's method ids (run folders, records, --only) are
 # "baseline" (the common patches alone) and the contenders' patches joined by "+"; every table,
-# legend and CSV shows these names instead: the method a patch selects, then the other patches.
-METHOD_PATCH_LABELS = {"predict-gs": "Predict-GS", "predict-gs-high-rate": "Predict-GS-high-rate",
-                       "hacpp": "HAC++", "scaffold": "Scaffold-GS"}
+# legend and CSV shows these names instead: the method a patch selects (its label, declared by
+# its method spec or patch file: baseline.config.patch_labels), then the other patches.
+BASELINE_LABEL = "HAC"
 
 
 def base_label(common_patches) -> str:
     """The name of the baseline of a comparison: HAC, or the method its common patches select."""
+    labels = patch_labels()
     for pt in common_patches or ():
-        if pt in METHOD_PATCH_LABELS:
-            return METHOD_PATCH_LABELS[pt]
-    return "HAC"
+        if pt in labels:
+            return labels[pt]
+    return BASELINE_LABEL
 
 
 def method_label(name: str, common_patches=()) -> str:
-    """``baseline`` -> ``HAC``; ``predict-gs+masks-lr-scaled`` -> ``Predict-GS+masks-lr-scaled``;
-    ``entropy-factorized`` (a HAC variant) -> ``HAC+entropy-factorized``. No spaces, so a label
-    is one word in a table."""
+    """``baseline`` -> ``HAC``; a method's patch -> its label, followed by the other patches
+    (``<method>+masks-lr-scaled``); ``entropy-factorized`` (a HAC variant) ->
+    ``HAC+entropy-factorized``. No spaces, so a label is one word in a table."""
     base = base_label(common_patches)
     if name == "baseline":
         return base
     parts = [p for p in name.split("+") if p]
     if not parts:
         return base
-    # a later patch that is a method of its own is named as one: predict-gs+hacpp -> Predict-GS+HAC++
-    rest = ["HAC++" if p == "hacpp" else p for p in parts[1:]]
-    if parts[0] in METHOD_PATCH_LABELS:
-        return "+".join([METHOD_PATCH_LABELS[parts[0]], *rest])
+    labels, methods = patch_labels(), method_specs()
+    # a later patch that is a method of its own is named as one (its label)
+    rest = [labels.get(p, p) if p in methods else p for p in parts[1:]]
+    if parts[0] in labels:
+        return "+".join([labels[parts[0]], *rest])
     return "+".join([base, parts[0], *rest])
+
+
+def method_notes(topic: str, names=None) -> list[tuple[str, str]]:
+    """(label, note) of every method spec that says something on ``topic`` (of those named in
+    ``names``, when given), by name."""
+    return [(s.label, note) for n, s in sorted(method_specs().items())
+            if (names is None or n in names) and (note := s.note(topic))]
 
 
 def label(results: dict, method: str) -> str:
@@ -220,9 +230,8 @@ def method_patches(results: dict, method: str) -> Optional[frozenset]:
 
 def nested_references(results: dict, method: str) -> list[str]:
     """The contenders (not the baseline) ``method`` extends: those whose patches are a strict
-    subset of its own. Predict-GS+HAC++ extends Predict-GS and HAC++, so it is also measured
-    against each: what HAC++'s coding adds to Predict-GS, and what Predict-GS adds on HAC++'s
-    coding."""
+    subset of its own. A method A+B extends A and B, so it is also measured against each: what
+    B adds to A, and what A adds on B."""
     base = results.get("baseline", "baseline")
     mine = method_patches(results, method)
     if not mine:
@@ -447,8 +456,9 @@ def groups_table(results: dict) -> Table:
     rows = [[label(results, r["method"]), _lam(r)] + [_f(r["groups"].get(g, 0) / MB, 4) for g in groups]
             + [_f(r["mb"], 4)] for r in runs]
     return Table("Bit allocation by group (MB)", ["method", "lambda"] + groups + ["total"], rows,
-                 ["feature = the feature provider's coded attribute(s) and sections (HAC: feat; "
-                  "Predict-GS: SFP grid + fusion MLP + residual); read from each file."], left=2)
+                 ["feature = the feature provider's coded attribute(s) and sections (HAC: feat"
+                  + "".join(f"; {lab}: {note}" for lab, note in method_notes("feature_sections"))
+                  + "); read from each file."], left=2)
 
 
 def table3(results: dict) -> Table:
@@ -632,8 +642,9 @@ def census_table(results: dict) -> Optional[Table]:
              "the corrections revive / remove; anchors drawing 0 / 1-3 / 4-7 / 8+: visible anchors "
              "by their number of drawn Gaussians; same pattern: the share of visible anchors whose "
              "K-slot drawn/not pattern equals their nearest visible neighbour's / a random one's; "
-             "kept by birth: initial / grown anchors (Predict-GS: grown in stage 1 / after); cut: "
-             "the PSNR left when the opacity threshold is raised until the run draws the "
+             "kept by birth: initial / grown anchors"
+             + "".join(f" ({lab}: {note})" for lab, note in method_notes("grown_anchors"))
+             + "; cut: the PSNR left when the opacity threshold is raised until the run draws the "
              "baseline's Gaussians per view (same rate point), and its change. `pgs census RUN "
              "[RUN2 ...]` prints the whole census."]
     notes += _not_shown(results, lambda r: bool(r.get("census")), "the census was")
@@ -667,9 +678,9 @@ def curve_table(results: dict) -> Optional[Table]:
              "anchor (bits per coded value x coded values per anchor) over the last span; in "
              "brackets the change vs the baseline's run at the same rate point and seed (read a "
              "change against the spread between one method's seeds)."]
-    if any("predict-gs" in r.get("method_patches", ()) for r in runs):
-        notes[0] += (" Predict-GS's progressive training renders downsampled views for the "
-                     "first 30% of the schedule: its L1 there is on smaller images.")
+    used = {p for r in runs for p in r.get("method_patches", ())}
+    for lab, note in method_notes("training_curve", used):
+        notes[0] += f" {lab}'s {note}"
     notes += _not_shown(results, lambda r: bool(r.get("train_curve")), "the training curve was")
     return Table("Training curves", ["method", "lambda"] + span_headers(curves)
                  + ["bits/anchor, last span"], rows, notes, left=2)
@@ -1145,7 +1156,7 @@ def rate_elements(row: dict) -> Optional[int]:
 def _rate_term_line(results: dict, runs: list) -> str:
     """What one lambda means per method: the rate term is HAC's bits per coded parameter,
     lambda x bits / (sampled anchors x E), so a method coding fewer values per anchor (E) weighs
-    each bit more at the same lambda (Predict-GS: E = 25 + 6 + 30 = 61 against HAC's 86)."""
+    each bit more at the same lambda (a 25-dim residual: E = 25 + 6 + 30 = 61 against HAC's 86)."""
     per_method = {}
     for r in runs:
         e = rate_elements(r)
@@ -1430,11 +1441,13 @@ def format_report(results: dict, markdown: bool = False) -> str:
 
 
 SURVEY_COLUMNS = ["Submethod", "PSNR", "SSIM", "LPIPS", "Size [Bytes]", "#Gaussians"]
-# The survey's dataset folders, by the protocol patch that trains on each dataset
-SURVEY_DATASETS = {"tandt": "TanksAndTemples", "mip360": "MipNeRF360",
-                   "deepblending": "DeepBlending", "nerf-synthetic": "SyntheticNeRF"}
 RUNS_COLUMNS = ["Method", "lambda", "seed", "PSNR", "SSIM", "SSIM convention", "SSIM (skimage)",
                 "LPIPS", "Size [Bytes]", "#Gaussians"]
+
+
+def survey_datasets() -> dict[str, str]:
+    """The survey's dataset folders, by the dataset patch that trains on each (its ``survey``)."""
+    return {n: i.survey for n, i in patch_infos().items() if i.kind == "dataset" and i.survey}
 
 
 def gaussians_count(row: dict) -> Optional[int]:
@@ -1447,9 +1460,10 @@ def gaussians_count(row: dict) -> Optional[int]:
 def survey_dataset(results: dict) -> str:
     """The survey's dataset folder of a comparison: the dataset its protocol patch names
     (``tandt`` -> TanksAndTemples, ...), else the name of the folder its scene lies in."""
+    datasets = survey_datasets()
     for pt in results.get("common_patches") or ():
-        if pt in SURVEY_DATASETS:
-            return SURVEY_DATASETS[pt]
+        if pt in datasets:
+            return datasets[pt]
     return Path(results.get("scene", "scenes")).parent.name or "scenes"
 
 
