@@ -13,7 +13,8 @@ DEVICE_HELP = "where to render: auto | cpu | cuda | cuda:N (default: the run's t
 
 def _config_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--patch", action="append", default=[], metavar="NAME",
-                   help="config patch (patches/NAME.toml or a path); repeat to apply in order")
+                   help="config patch: a shipped one by name (`pgs config --list` shows them by kind) "
+                        "or a .toml path; repeat to apply in order")
     p.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
                    help="override one config value (after the patches)")
     p.add_argument("-r", "--resolution", type=int, default=None,
@@ -48,9 +49,9 @@ def _build_cfg(args):
 
 
 def cmd_config(args) -> int:
-    from baseline.config import to_toml
+    from baseline.config import format_patch_list, to_toml
 
-    print(to_toml(_build_cfg(args)))
+    print(format_patch_list() if args.list else to_toml(_build_cfg(args)))
     return 0
 
 
@@ -643,8 +644,10 @@ def main(argv=None) -> int:
     ap.add_argument("--version", action="version", version=f"pgs {_version()}")
     sub = ap.add_subparsers(dest="cmd", required=True)
 
-    p = sub.add_parser("config", help="print the merged config")
+    p = sub.add_parser("config", help="print the merged config, or the shipped patches (--list)")
     _config_args(p)
+    p.add_argument("--list", action="store_true",
+                   help="list the shipped patches grouped by kind, with their descriptions")
     p.set_defaults(fn=cmd_config)
 
     p = sub.add_parser("make-scene", help="write the procedural synthetic scene (COLMAP format)")

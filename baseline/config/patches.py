@@ -20,6 +20,7 @@ import functools
 import json
 import tomllib
 import typing
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -36,7 +37,7 @@ PATCH_DIR = Path(__file__).resolve().parent.parent / "patches"
 PATCH_KINDS = {"preset": "schedules and machines", "dataset": "a dataset's protocol",
                "method": "a method of its own", "rate": "rate points",
                "ablation": "a method with a part removed or swapped",
-               "codec": "how the file is coded (no effect on training)",
+               "codec": "how the file is coded; no effect on training",
                "lever": "one setting changed, to measure what it does"}
 META_KEYS = ("kind", "description", "label", "survey")
 
@@ -226,7 +227,7 @@ def parse_set(expr: str) -> dict:
     return out
 
 
-def build_config(patches: list[str] = (), sets: list[str] = ()) -> Config:
+def build_config(patches: Sequence[str] = (), sets: Sequence[str] = ()) -> Config:
     """Defaults, then each patch in order, then each ``--set``."""
     cfg = default_config()
     for name in patches:
