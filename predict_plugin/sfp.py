@@ -23,7 +23,7 @@ on the anchor position only, so rendering skips the grid query and the fusion ML
 from __future__ import annotations
 
 from dataclasses import replace
-from typing import Optional
+from typing import Optional, cast
 
 import torch
 import torch.nn as nn
@@ -93,8 +93,9 @@ class SpatialFeaturePool(FeatureProvider):
         self.fusion = nn.Sequential(nn.Linear(self.grid.output_dim, p.fusion_hidden), nn.ReLU(),
                                     nn.Linear(p.fusion_hidden, self.feature_dim))
         if p.fusion_init == "zero":
-            nn.init.zeros_(self.fusion[2].weight)
-            nn.init.zeros_(self.fusion[2].bias)
+            out = cast(nn.Linear, self.fusion[2])
+            nn.init.zeros_(out.weight)
+            nn.init.zeros_(out.bias)
         elif p.fusion_init != "default":
             raise ValueError(f"predict.fusion_init must be 'default' or 'zero', got '{p.fusion_init}'")
         self.use_residual = bool(p.residual) and p.residual_dim > 0

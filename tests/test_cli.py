@@ -232,7 +232,6 @@ def test_small_things_a_new_user_meets(tmp_path, capsys):
     """--version; pgs info on a file that is not a .pgs names it; a wrong scene path leaves no
     output folder; make-scene refuses sizes below 1 with a message, not a traceback."""
     import subprocess
-    import sys
     from pathlib import Path
 
     with pytest.raises(SystemExit) as e:
@@ -312,7 +311,6 @@ def test_a_run_folder_is_owned_by_one_process(tmp_path):
     re-entrant in its process and goes with the process, however it ends."""
     import subprocess
     import sys
-    import time
 
     from baseline.guard import OutputError, RunLock
 

@@ -1,5 +1,4 @@
 """Lossless voxel-lattice positions (codec.positions = "lattice", HAC++'s kind of coding)."""
-import dataclasses
 
 import numpy as np
 import pytest

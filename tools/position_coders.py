@@ -16,7 +16,6 @@ import argparse
 import time
 
 import numpy as np
-import torch
 
 from baseline.codec.lattice import decode_lattice, encode_lattice, lattice_coordinates
 from baseline.codec.positions import decode_positions, encode_positions

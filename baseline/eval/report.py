@@ -1257,7 +1257,7 @@ def verdict_lines(results: dict) -> list[str]:
                    and x["bd_rate"] is not None]
             if len(per) > 1:
                 v = [x["bd_rate"] for x in per]
-                out.append(f"  per seed: " + ", ".join(f"{x['bd_rate']:+.2f}% (seed {x['seed']})"
+                out.append("  per seed: " + ", ".join(f"{x['bd_rate']:+.2f}% (seed {x['seed']})"
                                                        for x in per)
                            + f"; spread {max(v) - min(v):.2f} points")
         return out
