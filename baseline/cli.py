@@ -190,7 +190,7 @@ def cmd_census(args) -> int:
 
 
 def cmd_curves(args) -> int:
-    from baseline.eval.curves import format_curves
+    from baseline.eval.report.curves import format_curves
 
     print(format_curves(args.runs, windows=args.windows))
     return 0

@@ -56,6 +56,7 @@ from baseline.hac.entropy import build_entropy_model
 from baseline.hac.hashgrid import BinaryHashGrid
 from baseline.memory import AllocationError, describe, is_allocation_failure
 from baseline.scaffold.model import AnchorModel, check_bounds
+MODEL_FILE = "model.pgs"      # a run folder's encoded model
 CODER_FLOOR = 2.0 ** -24     # the least probability constriction's leaky quantizer gives a bin
 MASK_LOGIT = 20.0      # decoded masks as logits: sigmoid(+-20) is unambiguously on / off
 

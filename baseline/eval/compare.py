@@ -45,13 +45,13 @@ from tqdm import tqdm
 
 from baseline.config import Config, build_config, config_hash
 from baseline.contracts import feature_cache
+from baseline.modelfile import MODEL_FILE
 
 # evaluate()'s breakdown of the Gaussians per view (baseline/eval/evaluate.py alive_breakdown)
 ALIVE_KEYS = ("visible_anchors_mean", "mask_on_fraction", "opacity_kept_fraction")
 
 BASELINE = "baseline"
 RECORD = "compare.json"
-MODEL_FILE = "model.pgs"
 RESULTS_FORMAT = "pgs-compare/1"
 # the decoded file's views of a run: renders/, gt/ and per_view.json (3DGS's layout)
 DECODED_VIEWS = "decoded"
@@ -574,7 +574,7 @@ def _run_stages(spec, scene_path, lpips_fn, lpips, progress, stage, remeasure, c
         _stage_census(spec, record)
         done.append("census")
     if "train_curve" not in record and not records_only(spec):
-        from baseline.eval.curves import train_curve
+        from baseline.eval.report.curves import train_curve
 
         curve = train_curve(spec.dir, res.get("iterations"))
         if curve is not None:           # derived from the training log; nothing is measured
@@ -666,7 +666,7 @@ def make_row(spec: RunSpec, res: dict, record: dict) -> dict:
         "records_only": records_only(spec),
         # the Gaussian census (absent from records written before it was kept)
         "census": record.get("census"),
-        # the training curve's summary (baseline.eval.curves; absent from older records)
+        # the training curve's summary (baseline.eval.report.curves; absent from older records)
         "train_curve": record.get("train_curve"),
         # why its training time is no measurement, where a user marked it (mark_untimed)
         "untimed": record.get("untimed"),

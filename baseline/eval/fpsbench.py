@@ -28,7 +28,7 @@ import torch
 
 from baseline.modelfile import decode_model
 from baseline.contracts import feature_cache
-from baseline.eval.compare import MODEL_FILE
+from baseline.modelfile import MODEL_FILE
 from baseline.pipeline import render_view
 
 

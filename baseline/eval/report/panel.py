@@ -188,7 +188,7 @@ def write_panels(results: dict, out_dir: str | Path, views: Optional[list[int]] 
     (the first seed of each lambda) and each view in ``views`` (test-view indices; default
     ``[0]``), every method whose ``model.pgs`` is present. Returns the panels' records; runs
     reported from archived records (no model file) are left out and named."""
-    from baseline.eval.report import label, method_names, runs_of
+    from baseline.eval.report.names import label, method_names, runs_of
     from baseline.run import load_scene_for
 
     views = [0] if views is None else list(views)

@@ -13,8 +13,9 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from baseline.eval.report import (GROUP_ORDER, MB, label, method_names, rate_points, runs_of,
-                                   seed_mean_points, seeds_of, untimed)
+from baseline.eval.report.names import (GROUP_ORDER, MB, label, method_names, rate_points, runs_of,
+                                        seed_mean_points, seeds_of)
+from baseline.eval.report.timing import untimed
 from baseline.fileio import atomic_path
 
 GROUP_COLORS = {"feature": "#d62728", "anchor": "#1f77b4", "scaling": "#2ca02c",

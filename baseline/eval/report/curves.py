@@ -17,6 +17,9 @@ import json
 from pathlib import Path
 from typing import Optional
 
+from baseline.eval.report.cells import Table, _change, _pct
+from baseline.eval.report.names import rate_elements
+
 WINDOWS = 6
 
 
@@ -89,7 +92,6 @@ def _schedule(run_dir: str | Path) -> Optional[int]:
 
 
 def _cell(v: Optional[float], ref: Optional[float], nd: int) -> str:
-    from baseline.eval.report import _change, _pct
 
     if v is None:
         return "-"
@@ -129,7 +131,6 @@ def values_per_anchor(run_dir: str | Path) -> Optional[int]:
     neither is recorded."""
     import tomllib
 
-    from baseline.eval.report import rate_elements
     from baseline.fileio import read_text_bounded
 
     run_dir = Path(run_dir)
@@ -150,7 +151,6 @@ def values_per_anchor(run_dir: str | Path) -> Optional[int]:
 
 def format_curves(runs: list[str | Path], windows: int = WINDOWS) -> str:
     """``pgs curves``: the curves of run folders as a table, the first run as the reference."""
-    from baseline.eval.report import Table
 
     items = []
     for r in runs:
