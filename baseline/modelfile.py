@@ -1,6 +1,6 @@
 """Encode a trained anchor model into one self-contained ``.pgs`` file, decode it back.
 
-Sections (each with length + CRC32 in the container, DESIGN.md "Bitstream"):
+Sections (each with length + CRC32 in the container, :mod:`baseline.codec.container`):
     positions            anchor positions, 16-bit (HAC's widened bounds in the header): raw
                          uint16 [N,3] (codec.positions = "raw16", HAC's layout) or coded as a
                          set ("sorted", baseline/codec/positions.py; the anchors of every other

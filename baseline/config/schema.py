@@ -57,7 +57,7 @@ class ModelConfig:
     feat_dim: int = 50
     n_offsets: int = 10
     hidden: int = 50
-    voxel_size: float = 0.01             # 0: automatic (SPEC.md section 2; the reference also
+    voxel_size: float = 0.01             # 0: automatic (docs/method.md section 2; the reference also
     #                                      reads a negative size so: refused here as a typo)
     update_init_factor: int = 16         # NeRF-Synthetic: 4
     update_hierarchy_factor: int = 4

@@ -2,7 +2,7 @@
 
 Registered as ``entropy_model`` components (see :mod:`baseline.hac`):
 
-* ``hac``        — HAC's hash-grid context model (SPEC.md 3): a :class:`BinaryHashGrid` queried at
+* ``hac``        — HAC's hash-grid context model (docs/method.md section 3): a :class:`BinaryHashGrid` queried at
   the anchor position, then ``Linear(96, 100) ReLU Linear(100, sum(2 d) + n_attrs)`` giving per
   attribute a mean and a scale per value (scale clamped >= 1e-9, no activation, as HAC) and
   one quantization-step adjustment per anchor (``Q = q0 (1 + tanh(adj))``). For the baseline

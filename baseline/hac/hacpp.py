@@ -1,5 +1,5 @@
 """HAC++'s entropy model (``hacpp``): a hyperprior, a channel context and a two-component
-mixture for the main coded attribute (SPEC.md section 6; YihangChen-ee/HAC-plus).
+mixture for the main coded attribute (docs/method.md section 6; YihangChen-ee/HAC-plus).
 
 * **Hyperprior**: HAC's binary hash grid at the anchor position, then ``Linear(96, 100) ReLU
   Linear(100, n_out)`` giving, in order: for the *main* attribute mean, scale and a mixture

@@ -1,4 +1,4 @@
-"""HAC's quantization phases as a training hook (SPEC.md section 3).
+"""HAC's quantization phases as a training hook (docs/method.md section 3).
 
 it <= noise_from: no quantization; noise_from < it <= context_from: U(-0.5,0.5) * Q0 noise;
 at context_from the anchor bounds are recomputed; after it the context model is on (adaptive
