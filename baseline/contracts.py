@@ -92,7 +92,26 @@ class _Component:
     TRAINING_SEMANTICS: ClassVar[int] = 1
 
 
-class FeatureProvider(_Component, nn.Module):
+class _Module(_Component, nn.Module):
+    """What providers and refiners share: their Adam groups and the state a file keeps of them."""
+
+    def param_groups(self, cfg) -> list[ParamGroup]:
+        """The Adam groups of the component's parameters."""
+        raise NotImplementedError
+
+    def codec_state(self) -> dict | None:
+        """JSON-able construction state the decoder needs besides the config; None: none."""
+        return None
+
+    @classmethod
+    def check_codec_state(cls, state: Any, key: str) -> int:
+        """Check a file header's ``codec_state`` of this class before anything is built (raise
+        :class:`baseline.codec.container.BitstreamError` naming ``key``); returns the hash-grid
+        entries it makes the decoder allocate. Default: a class that keeps no state takes none."""
+        raise header_error(key, f"the {cls.__name__} component keeps no state in a file")
+
+
+class FeatureProvider(_Module):
     """Per-anchor features for the decoder MLPs (baseline: ``explicit``, a learned table).
 
     A provider may add per-anchor tensors to the model (``model.add_per_anchor``) and must
@@ -118,21 +137,6 @@ class FeatureProvider(_Component, nn.Module):
         [M, feature_dim]."""
         raise NotImplementedError
 
-    def param_groups(self, cfg) -> list[ParamGroup]:
-        """The Adam groups of the provider's parameters."""
-        raise NotImplementedError
-
-    def codec_state(self) -> dict | None:
-        """JSON-able construction state the decoder needs besides the config; None: none."""
-        return None
-
-    @classmethod
-    def check_codec_state(cls, state: Any, key: str) -> int:
-        """Check a file header's ``codec_state`` of this class before anything is built (raise
-        :class:`baseline.codec.container.BitstreamError` naming ``key``); returns the hash-grid
-        entries it makes the decoder allocate. Default: a class that keeps no state takes none."""
-        raise header_error(key, f"the {cls.__name__} component keeps no state in a file")
-
     def build_cache(self, xyz: Tensor) -> None:
         """Precompute the features of all anchors at ``xyz`` [N, 3] (``caches_features``)."""
 
@@ -145,7 +149,7 @@ class FeatureProvider(_Component, nn.Module):
         return None
 
 
-class Refiner(_Component, nn.Module):
+class Refiner(_Module):
     """Additive corrections of the decoded Gaussians (optional; baseline: ``none``).
 
     ``forward(idx [M], values {name: [M, d]}, view_dir [M, 3], dist [M, 1])`` returns the
@@ -155,16 +159,6 @@ class Refiner(_Component, nn.Module):
     """
 
     active: bool = True
-
-    def param_groups(self, cfg) -> list[ParamGroup]:
-        raise NotImplementedError
-
-    def codec_state(self) -> dict | None:
-        return None
-
-    @classmethod
-    def check_codec_state(cls, state: Any, key: str) -> int:
-        raise header_error(key, f"the {cls.__name__} component keeps no state in a file")
 
     def bake_heads(self, values: dict[str, Tensor]) -> list[BakeHead] | None:
         """Its heads for baking, given every anchor's decoded values; None: it declares none
