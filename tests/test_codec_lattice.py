@@ -8,7 +8,7 @@ from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
 from baseline.codec.container import BitstreamError
-from baseline.codec.fuzz import fuzz_parser
+from baseline.testing.fuzz import fuzz_parser
 from baseline.codec.lattice import (MAX_DEPTH, decode_lattice, encode_lattice, lattice_coordinates,
                                     lattice_positions)
 from baseline.codec.positions import encode_positions

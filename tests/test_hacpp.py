@@ -201,7 +201,7 @@ def test_float16_weights_decode_and_a_header_contradicting_them_is_refused(hacpp
     import dataclasses
 
     from baseline.codec.container import BitstreamError, read_container
-    from baseline.codec.hostile import _resign
+    from baseline.testing.hostile import _resign
     from baseline.modelfile import decode_model, encode_model
     t, _, _ = hacpp_files[name]
     model, entropy = copy.deepcopy(t.model), copy.deepcopy(t.entropy)
@@ -232,7 +232,7 @@ def test_hacpp_file_decodes_identically_with_two_threads(hacpp_files, tmp_path):
 
 
 def test_damaged_hacpp_files_give_clean_errors(hacpp_files):
-    from baseline.codec.hostile import crafted_cases, run_cases
+    from baseline.testing.hostile import crafted_cases, run_cases
     files = {n: hacpp_files[n][2].read_bytes() for n in ("hac", "pgs")}
     cases = [c for c in crafted_cases(files, n_random=30, seed=2)
              if any(k in c.name for k in ("truncated", "flipped", "overwritten", "taken from",

@@ -175,7 +175,7 @@ def test_auto_sized_sfp_decodes_after_the_anchor_count_changed(tmp_path):
     # a damaged state in the header is a clear bitstream error, not a crash
     # (the header re-signed as an encoder would: only its content is wrong)
     from baseline.codec.container import BitstreamError, read_container
-    from baseline.codec.hostile import _resign
+    from baseline.testing.hostile import _resign
     header, sections = read_container(tmp_path / "m.pgs")
     header["module_state"]["provider"] = {"grid": "junk"}
     (tmp_path / "bad.pgs").write_bytes(_resign(header, list(sections.items())))

@@ -202,7 +202,7 @@ def test_a_decode_over_the_machine_under_a_raised_budget_is_named(decoded_files,
     import sys
 
     from baseline.codec.container import _parse
-    from baseline.codec.hostile import _edit, _resign
+    from baseline.testing.hostile import _edit, _resign
 
     h, s = _parse((decoded_files["baseline"] / "model.pgs").read_bytes(), "x")
     for path, v in (("entropy.grid.log2_table_3d", 24), ("entropy.grid.n_features", 16),

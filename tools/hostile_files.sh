@@ -23,7 +23,7 @@ f="$out/files"
 [ -f "$f/pgs-hacpp.pgs" ] || $PGS encode "$out/Q" -o "$f/pgs-hacpp.pgs" > /dev/null
 rc=0
 for s in $seeds; do
-  $PY -m baseline.codec.hostile "$f/hac.pgs" "$f/pgs.pgs" "$f/compact.pgs" "$f/hacpp.pgs" \
+  $PY -m baseline.testing.hostile "$f/hac.pgs" "$f/pgs.pgs" "$f/compact.pgs" "$f/hacpp.pgs" \
     "$f/pgs-hacpp.pgs" --random 400 --seed "$s" > "$out/hostile-s$s.txt" 2>&1 || rc=1
   echo "seed $s: $(tail -n 1 "$out/hostile-s$s.txt")"
 done

@@ -18,7 +18,7 @@ no traceback, no panic) or, for a case marked harmless, decodes. Anything else i
 another exception, a hang, the memory cap hit, a worker that died, or a silent decode of a
 case that must be refused.
 
-By hand: ``python -m baseline.codec.hostile A.pgs B.pgs [--cases N] [--cap-mb 1024]``.
+By hand: ``python -m baseline.testing.hostile A.pgs B.pgs [--cases N] [--cap-mb 1024]``.
 """
 from __future__ import annotations
 
@@ -328,7 +328,7 @@ def _weight_edits(with_section, name: str, p: bytes) -> None:
 
 
 # ------------------------------------------------------------------------------- running
-WORKER = "baseline.codec.hostile"
+WORKER = "baseline.testing.hostile"
 
 
 def _worker() -> None:
@@ -500,7 +500,7 @@ def run_cases(cases: list, cap_mb: int = 1024, timeout: float = 120.0, echo=None
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m baseline.codec.hostile")
+    ap = argparse.ArgumentParser(prog="python -m baseline.testing.hostile")
     ap.add_argument("files", nargs="*")
     ap.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--random", type=int, default=200, help="random flips/overwrites per file")

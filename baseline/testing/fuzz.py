@@ -1,6 +1,6 @@
 """Fuzzing helpers for bitstream parsers (usable from tests and by hand).
 
-    from baseline.codec.fuzz import fuzz_parser
+    from baseline.testing.fuzz import fuzz_parser
     stats = fuzz_parser(read_container, good_bytes, n=500, seed=0)
 
 Each iteration applies one random mutation to a valid input (bit flip, byte overwrite,
