@@ -34,7 +34,7 @@ from typing import Callable, Optional
 
 import torch
 
-from baseline.contracts import BakeHead  # noqa: F401  (the heads it bakes; declared there)
+from baseline.contracts import BakeHead, Refiner  # noqa: F401  (BakeHead: the heads it bakes)
 from baseline.scaffold.gaussians import kept_gaussians
 
 # Pre-activation attributes a head can add to, with their channels per neural Gaussian.
@@ -100,7 +100,8 @@ class BakedDecoder:
         heads = model.decoder.bake_heads(feat)
         ref = model.refiner
         if ref is not None and ref.active:
-            ref_heads = ref.bake_heads(values)
+            # a refiner outside the Refiner contract declares no heads either
+            ref_heads = ref.bake_heads(values) if isinstance(ref, Refiner) else None
             if ref_heads is None:               # a refiner that declares no heads
                 return None
             heads = heads + list(ref_heads)
