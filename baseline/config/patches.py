@@ -6,7 +6,7 @@ config sections it sets, a shipped patch declares, as top-level keys:
 
 * ``kind``: one of :data:`PATCH_KINDS` (how ``pgs config --list`` groups it);
 * ``description``: one line;
-* ``label`` (optional): what reports call a method the patch selects (``HAC++``);
+* ``label`` (optional): what reports call a method the patch selects (as tables and legends show it);
 * ``survey`` (dataset patches): the 3DGS compression survey's name of the dataset;
 * ``include`` (optional): patches applied first.
 

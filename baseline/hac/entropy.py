@@ -235,7 +235,7 @@ class EntropyModel(nn.Module):
         straight-through gradient ("ste", :func:`baseline.hac.quant.ste_round_q`); the bits are
         estimated on the noisy values either way.
         ``bit_weights`` {name: [N, d] float}: weigh those attributes' bits by these instead of
-        the Gaussian mask (a mask-training strategy's choice, e.g. HAC++'s anchor masks).
+        the Gaussian mask (a mask-training strategy's choice, e.g. anchor masks).
         """
         if decoder_quant not in ("noise", "ste"):
             raise ValueError(f"decoder_quant must be 'noise' or 'ste', got {decoder_quant!r}")

@@ -8,7 +8,7 @@ summary in each run's record (``compare.json``), so archived records keep it wit
 
 What the numbers are: L1 and bits are those of the sampled training view of each logged step,
 so a span's mean moves between seeds (truck, HAC, seeds 0 and 1: by 1-4% per span); a method that
-trains on downsampled views (Predict-GS's progressive training, the first 30% of the schedule)
+trains on downsampled views (a progressive schedule: its method spec's training_curve note says where)
 has its L1 there on smaller, smoother images.
 """
 from __future__ import annotations
