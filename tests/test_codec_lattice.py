@@ -138,13 +138,13 @@ def test_damage_is_named_never_a_crash():
 
 
 def test_position_coders_tool_ranks_the_coders():
-    """tools/position_coders.py: every coder round-trips (checked inside) and the lattice coder
+    """tools/probes/position_coders.py: every coder round-trips (checked inside) and the lattice coder
     is the smallest on an anchor-like set."""
     import importlib.util
     import pathlib
 
     spec = importlib.util.spec_from_file_location(
-        "position_coders", pathlib.Path(__file__).parents[1] / "tools" / "position_coders.py")
+        "position_coders", pathlib.Path(__file__).parents[1] / "tools" / "probes" / "position_coders.py")
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
     xyz = lattice_positions(_surface(6000, 7), 0.02)

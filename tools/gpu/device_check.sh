@@ -8,11 +8,11 @@
 #                             3.12, tarred under devsite/); the machine has torch, numba, scipy,
 #                             scikit-image, pytest and hypothesis
 #   .carry/models/*.pgs       decoded-model files to time (first = the reference of the ratios)
-#   .carry/cams.pt            their test cameras (python tools/gpu_fps.py export FILE -o ...)
-# Run there:  bash tools/device_check.sh [SECONDS_FOR_THE_FULL_SUITE]
+#   .carry/cams.pt            their test cameras (python tools/gpu/gpu_fps.py export FILE -o ...)
+# Run there:  bash tools/gpu/device_check.sh [SECONDS_FOR_THE_FULL_SUITE]
 set -uo pipefail
 SUITE_S=${1:-150}
-source tools/device_setup.sh
+source tools/gpu/device_setup.sh
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv | tee "$OUT/gpu.txt"
 python3 -c "import torch; print('torch', torch.__version__, 'cuda', torch.version.cuda)" \
     | tee -a "$OUT/gpu.txt"
@@ -31,7 +31,7 @@ tail -5 "$OUT/cuda-tests.log"
 runs=()
 for f in .carry/models/*.pgs; do runs+=(--run "$f"); done
 if [ ${#runs[@]} -gt 0 ] && [ -f .carry/cams.pt ]; then
-    python3 tools/gpu_fps.py bench --cams .carry/cams.pt "${runs[@]}" --device cuda \
+    python3 tools/gpu/gpu_fps.py bench --cams .carry/cams.pt "${runs[@]}" --device cuda \
         --rounds 10 --scale 1 --scale 4 --json "$OUT/fps.json" >"$OUT/fps.log" 2>&1
     stamp "fps bench rc=$?"
 fi

@@ -1,6 +1,6 @@
 """Second layers of the Gaussian heads for every candidate or only for the kept Gaussians.
 
-    python tools/kept_slot_second_layer.py RUN [RUN ...] [--rounds 3] [--views 32] [--threads 1]
+    python tools/probes/kept_slot_second_layer.py RUN [RUN ...] [--rounds 3] [--views 32] [--threads 1]
 
 A decoded frame runs the cov and color heads' second layers (decoder, plus a refiner's heads
 such as Predict-GS's MGRD, summed in the baked form) on all K slots of every visible anchor,

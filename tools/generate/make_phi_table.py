@@ -4,7 +4,7 @@ mixture coder (``baseline/codec/mixture.py``).
 ``T[j] = round(Phi(j / 1024) * 2^30)`` for j = 0 .. 8192 (z in [0, 8]), plus ``T[8193] = 2^30``,
 computed in 50-digit decimal arithmetic (the error function's power series), so the table is
 the same on every machine; the coder reads it, it never computes a CDF in floating point.
-Run: ``python tools/make_phi_table.py`` (about 2 s).
+Run: ``python tools/generate/make_phi_table.py`` (about 2 s).
 """
 import decimal
 from decimal import Decimal as D
@@ -47,6 +47,6 @@ def table() -> np.ndarray:
 
 
 if __name__ == "__main__":
-    out = Path(__file__).resolve().parent.parent / "baseline" / "codec" / "phi_table.npy"
+    out = Path(__file__).resolve().parents[2] / "baseline" / "codec" / "phi_table.npy"
     np.save(out, table())
     print(f"wrote {out}")

@@ -1,10 +1,10 @@
 #!/bin/bash
 # The hostile-input harness over five small files of one synthetic scene: HAC, Predict-GS,
 # Predict-GS with the compact codec, HAC++ and Predict-GS+HAC++ (120 demo iterations each).
-#   tools/hostile_files.sh OUT [SEED ...]      (default seeds 1 2; PGS, PY: the commands)
+#   tools/checks/hostile_files.sh OUT [SEED ...]      (default seeds 1 2; PGS, PY: the commands)
 # Prints the harness's summary line per seed; OUT/hostile-sSEED.txt holds each run's findings.
 set -e
-out=${1:?usage: tools/hostile_files.sh OUT [SEED ...]}; shift
+out=${1:?usage: tools/checks/hostile_files.sh OUT [SEED ...]}; shift
 seeds=${*:-1 2}
 PGS=${PGS:-pgs}; PY=${PY:-python}
 [ -d "$out/scene" ] || $PGS make-scene "$out/scene" --views 10 --width 48 --height 36 --seed 5

@@ -1,4 +1,4 @@
-# Sourced by tools/device_check.sh and tools/device_rerun.sh on the GPU machine: unpack the
+# Sourced by tools/gpu/device_check.sh and tools/gpu/device_rerun.sh on the GPU machine: unpack the
 # carried installs (.carry/site.tar.xz, see device_check.sh), register the project's entry
 # points, build gsplat's CUDA extension. Sets OUT, SITE, PYTHONPATH, thread counts, stamp().
 export PYTHONUNBUFFERED=1
@@ -20,6 +20,6 @@ export OMP_NUM_THREADS=$(nproc) NUMBA_NUM_THREADS=$(nproc)
 stamp "unpacked"
 
 # gsplat's CUDA extension, ahead of time (its wheel would JIT-compile on first use)
-TORCH_CUDA_ARCH_LIST=9.0 MAX_JOBS=$(nproc) python3 tools/build_gsplat_ext.py $SITE/gsplat \
+TORCH_CUDA_ARCH_LIST=9.0 MAX_JOBS=$(nproc) python3 tools/gpu/build_gsplat_ext.py $SITE/gsplat \
     >"$OUT/build.log" 2>&1
 stamp "gsplat build rc=$?"

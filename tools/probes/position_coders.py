@@ -1,6 +1,6 @@
 """Bits per anchor of each lossless anchor-position coder on a run's coded anchors.
 
-    python tools/position_coders.py RUN [RUN ...] [--repeat 3]
+    python tools/probes/position_coders.py RUN [RUN ...] [--repeat 3]
 
 For each run (a folder with checkpoint.pt) it codes the positions of the anchors the encoder
 writes (any Gaussian mask on) with: raw16 (HAC's 48 bits), sorted (the 16-bit values as a set),

@@ -5,10 +5,10 @@ that receives only the repository).
 machine has the ``.pgs`` files but not the scene. This tool splits the job:
 
     # here, where the scene is: the test cameras of the files' scene, a few KB
-    python tools/gpu_fps.py export RUN_OR_FILE.pgs -o cams.pt
+    python tools/gpu/gpu_fps.py export RUN_OR_FILE.pgs -o cams.pt
     # there: the same one-process bench (baseline.eval.fpsbench.run_fps_bench: decode every
     # file, rotate the order every round, median over rounds, ratios to the first file)
-    python tools/gpu_fps.py bench --cams cams.pt --run A.pgs --run B.pgs --device cuda [--scale 1 --scale 4]
+    python tools/gpu/gpu_fps.py bench --cams cams.pt --run A.pgs --run B.pgs --device cuda [--scale 1 --scale 4]
 
 ``frame`` is ``pgs bench frame`` there: each file's frame split into prefilter, decoding
 (plain and baked) and rasterization, ms per view at each scale.
@@ -28,7 +28,7 @@ from pathlib import Path
 
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from baseline.camera import Camera  # noqa: E402
 

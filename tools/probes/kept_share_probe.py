@@ -1,9 +1,9 @@
 """The kept share (opacity > 0 of the mask-on candidate Gaussians) of a training's first steps,
 on fixed test views: where a method's Gaussian count is decided.
 
-    python tools/kept_share_probe.py SCENE -r 4 --patch cpu [--patch predict-gs ...]
+    python tools/probes/kept_share_probe.py SCENE -r 4 --patch cpu [--patch predict-gs ...]
         [--set section.key=value ...] [--steps 0 10 25 50 100 200 300] [--views 8]
-    python tools/kept_share_probe.py SCENE -r 4 --patch cpu --init-seeds 4
+    python tools/probes/kept_share_probe.py SCENE -r 4 --patch cpu --init-seeds 4
 
 One JSON line per measured step: kept share, Gaussians per view, the share of visible anchors
 by their number of kept Gaussians, anchors, seconds since the start. ``--init-seeds N``

@@ -1,9 +1,9 @@
 #!/usr/bin/env bash
-# A second, shorter device call after tools/device_check.sh: rebuild gsplat on the fresh machine,
+# A second, shorter device call after tools/gpu/device_check.sh: rebuild gsplat on the fresh machine,
 # rerun the gsplat tests, then the suite from FIRST_FILE on, capped at SECONDS.
-# Run there:  bash tools/device_rerun.sh FIRST_FILE SECONDS
+# Run there:  bash tools/gpu/device_rerun.sh FIRST_FILE SECONDS
 set -uo pipefail
-source tools/device_setup.sh
+source tools/gpu/device_setup.sh
 python3 -m pytest -q -rs -p no:cacheprovider tests/test_render_gsplat.py >"$OUT/gsplat-tests.log" 2>&1
 stamp "gsplat tests rc=$?"; tail -3 "$OUT/gsplat-tests.log"
 files=$(ls tests/test_*.py | awk -v f="$1" '$0 >= f')

@@ -6,7 +6,7 @@ same sources once as the module ``gsplat.csrc`` (which gsplat imports before fal
 JIT), so the result can be kept and reused:
 
     pip install --target /tmp/site gsplat-1.5.3-py3-none-any.whl
-    TORCH_CUDA_ARCH_LIST=9.0 MAX_JOBS=16 python tools/build_gsplat_ext.py /tmp/site/gsplat
+    TORCH_CUDA_ARCH_LIST=9.0 MAX_JOBS=16 python tools/gpu/build_gsplat_ext.py /tmp/site/gsplat
 
 It only drives torch's own extension builder (torch.utils.cpp_extension) over gsplat's files.
 """

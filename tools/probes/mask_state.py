@@ -1,6 +1,6 @@
 """Where the Gaussian masks stand in a training checkpoint: the mask logits and the mask's Adam state.
 
-    python tools/mask_state.py RUN/checkpoint.pt [RUN2/checkpoint.pt ...]
+    python tools/probes/mask_state.py RUN/checkpoint.pt [RUN2/checkpoint.pt ...]
 
 Per checkpoint: the median mask logit, the share of masks off (the coder's rule: a Gaussian is
 on when sigmoid(logit) > ``entropy.mask_threshold`` of the run's ``config.toml`` beside the

@@ -3,7 +3,7 @@ reach beyond where most of them are, and (per trained run) how the SFP's box com
 anchors' extent. These are the facts that separate the scenes where Predict-GS keeps more
 Gaussians than HAC from those where it does not (`docs/notes/predict-gs-gaussian-count.md`).
 
-    python tools/scene_facts.py SCENE [-r 8] [--runs RUN ...]
+    python tools/probes/scene_facts.py SCENE [-r 8] [--runs RUN ...]
 
 One JSON line per scene, then one per run folder (its ``checkpoint.pt``):
 
