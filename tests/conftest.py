@@ -11,7 +11,7 @@ from baseline.data.synthetic import make_scene
 from baseline.train.trainer import Trainer
 
 # Fixtures that train a model end to end, and modules whose tests train in their bodies: their
-# tests carry the `slow` mark (`pytest -m "not slow"` runs the rest in a minute or two).
+# tests carry the `slow` mark (`pytest -m "not slow"` runs the rest).
 TRAINING_FIXTURES = {"decoded_files", "trained", "encoded", "local_run", "cuda_run", "hacpp_files"}
 TRAINING_MODULES = {"test_compare.py", "test_benchmark.py", "test_train.py"}
 
