@@ -2,7 +2,7 @@
 
 Shared by training, evaluation and decoded models, so the three render exactly the same way.
 
-Phases (SPEC.md section 3):
+Phases (docs/method.md section 3):
   ``none``      raw attribute values;
   ``noise``     training adds U(-0.5, 0.5) * Q0 noise; evaluation rounds with Q0;
   ``adaptive``  the entropy model's adaptive steps: noise in training (plus the rate estimate),

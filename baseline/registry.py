@@ -1,27 +1,36 @@
-"""Named components looked up from the config, and plugin discovery.
+"""Named components looked up from the config, methods, patch folders, and plugin discovery.
 
-Kinds of components (extend freely):
+Kinds of components (their contracts: :mod:`baseline.contracts`; extend freely):
     ``feature_provider``  per-anchor features for the decoder MLPs (baseline: ``explicit``)
     ``refiner``           additive corrections of decoded Gaussians (baseline: ``none``)
-    ``entropy_model``     rate model + coder of the coded attributes (``hac``, ``factorized``)
+    ``entropy_model``     rate model + coder of the coded attributes (``hac``, ``factorized``, ...)
     ``hooks``             training hook sets (``scaffold_densify``, ``hac_phases``, ...)
-    ``mask_training``     how the Gaussian masks train (``hac``, ``hacpp``)
+    ``mask_training``     how the Gaussian masks train (``hac``, ...)
     ``executor``          where a benchmark's runs execute (``local``, ``ray``)
     ``rasterizer``        rasterizer backends (``cpu``, ``gsplat``, ``reference``)
     ``config_section``    extra config dataclasses contributed by plugins (section name -> class)
+    ``method``            :class:`~baseline.contracts.MethodSpec` of a method users name
+    ``patch_dir``         a folder of TOML patches (``--patch NAME`` looks in every one)
 
 Plugins are Python packages exposing an entry point in the ``pgs.plugins`` group whose target
-is a callable ``register(registry_module)``; :func:`load_plugins` calls each once.
+is a callable ``register(registry_module)``; :func:`load_plugins` calls each once. A plugin
+registers a component whose module needs the baseline's compiled pieces as
+``lazy("package.module", "Name")``: it is imported when first used.
 """
 from __future__ import annotations
 
 import importlib
+import sys
 from importlib.metadata import entry_points
-from typing import Any, Callable, Dict
+from pathlib import Path
+from typing import Any
 
-_REGISTRY: Dict[str, Dict[str, Any]] = {}
+from baseline.contracts import MethodSpec
+
+_REGISTRY: dict[str, dict[str, Any]] = {}
 _BUILTINS_LOADED = False
 _PLUGINS_LOADED = False
+_LOADED_PLUGINS: list[str] = []
 ENTRY_POINT_GROUP = "pgs.plugins"
 
 # Modules of the baseline that register components on import.
@@ -41,6 +50,28 @@ class UnknownComponentError(KeyError):
         return str(self.args[0])
 
 
+class LazyComponent:
+    """A component class imported on first use: calling it builds an instance, and
+    :func:`component_class` resolves it to the class itself."""
+
+    def __init__(self, module: str, name: str):
+        self.module, self.name = module, name
+        self.__qualname__ = f"{module}.{name}"
+
+    def resolve(self) -> Any:
+        return getattr(importlib.import_module(self.module), self.name)
+
+    def __call__(self, *args, **kwargs):
+        return self.resolve()(*args, **kwargs)
+
+    def __repr__(self) -> str:
+        return f"lazy({self.module!r}, {self.name!r})"
+
+
+def lazy(module: str, name: str) -> LazyComponent:
+    return LazyComponent(module, name)
+
+
 def register(kind: str, name: str, obj: Any = None, *, replace: bool = False):
     """Register ``obj`` as component ``name`` of ``kind``; usable as a decorator."""
 
@@ -52,6 +83,16 @@ def register(kind: str, name: str, obj: Any = None, *, replace: bool = False):
         return o
 
     return _do(obj) if obj is not None else _do
+
+
+def register_method(spec: MethodSpec) -> MethodSpec:
+    """Register a method users name (its label in every table, its patches)."""
+    return register("method", spec.name, spec)
+
+
+def register_patch_dir(name: str, folder: str | Path) -> None:
+    """Register a folder of TOML patches under ``name`` (a plugin's own patches)."""
+    register("patch_dir", name, Path(folder).resolve())
 
 
 def get(kind: str, name: str) -> Any:
@@ -66,10 +107,9 @@ def get(kind: str, name: str) -> Any:
 
 
 def component_class(kind: str, name: str) -> Any:
-    """The class behind a registered component: a lazily imported one (an object with a
-    ``resolve()`` method, as plugins register them) is imported now."""
+    """The class behind a registered component (a :class:`LazyComponent` is imported now)."""
     obj = get(kind, name)
-    return obj.resolve() if hasattr(obj, "resolve") else obj
+    return obj.resolve() if isinstance(obj, LazyComponent) else obj
 
 
 def section_labels(kind: str, name: str) -> dict:
@@ -85,6 +125,20 @@ def section_labels(kind: str, name: str) -> dict:
 def names(kind: str) -> list[str]:
     ensure_loaded()
     return sorted(_REGISTRY.get(kind, {}))
+
+
+def methods() -> dict[str, MethodSpec]:
+    """Every registered method spec, by name."""
+    ensure_loaded()
+    return dict(_REGISTRY.get("method", {}))
+
+
+def patch_dirs() -> list[Path]:
+    """The patch folders plugins registered, by name (the baseline's own is
+    :data:`baseline.config.PATCH_DIR`)."""
+    ensure_loaded()
+    table = _REGISTRY.get("patch_dir", {})
+    return [table[k] for k in sorted(table)]
 
 
 def load_builtins() -> None:
@@ -105,16 +159,10 @@ def load_plugins() -> list[str]:
     if _PLUGINS_LOADED:
         return list(_LOADED_PLUGINS)
     _PLUGINS_LOADED = True
-    import sys
-
     for ep in entry_points(group=ENTRY_POINT_GROUP):
-        fn: Callable = ep.load()
-        fn(sys.modules[__name__])
+        ep.load()(sys.modules[__name__])
         _LOADED_PLUGINS.append(ep.name)
     return list(_LOADED_PLUGINS)
-
-
-_LOADED_PLUGINS: list[str] = []
 
 
 def ensure_loaded() -> None:

@@ -94,7 +94,7 @@ def encode_run(run_dir: str | Path, output: str | Path, *, overwrite: bool = Fal
     the codec runs)."""
     import dataclasses
 
-    from baseline.codec.model_codec import encode_model
+    from baseline.modelfile import encode_model
     from baseline.data.scene import scene_bounds
     from baseline.fileio import read_json_bounded
     from baseline.guard import check_output
@@ -269,7 +269,7 @@ class Renderable:
         self.entropy = None
         self.coded = None
         if target.is_file():
-            from baseline.codec.model_codec import decode_model
+            from baseline.modelfile import decode_model
 
             dec = decoded if decoded is not None else decode_model(target)
             self.decoded = dec

@@ -7,10 +7,12 @@ the stage switch) scale with ``train.iterations`` like every other milestone.
 """
 from __future__ import annotations
 
+from baseline.contracts import TrainingHook
+
 from predict_plugin.schedule import downsample_scale
 
 
-class PredictStages:
+class PredictStages(TrainingHook):
     name = "predict_stages"
 
     def __init__(self, trainer):
@@ -23,6 +25,16 @@ class PredictStages:
 
     def residual_on(self, it: int) -> bool:
         return bool(self.p.residual) and it > self.residual_from
+
+    @classmethod
+    def stage_starts(cls, cfg) -> list[int]:
+        """Stage 2 (the residual branch) starts after ``predict.residual_from``."""
+        p = cfg.ext["predict"]
+        return [cfg.train.at(p.residual_from)] if p.residual else []
+
+    @classmethod
+    def all_on_sets(cls, cfg) -> list[str]:
+        return ["predict.residual_from=0", "predict.schedule=none", "predict.d_s=1.0"]
 
     def restore(self, it: int) -> None:
         """After a checkpoint of iteration ``it`` is loaded: the refiner is on exactly when it

@@ -16,8 +16,10 @@ from __future__ import annotations
 import torch
 import torch.nn as nn
 
+from baseline.contracts import BakeHead, Refiner
 
-class MGRD(nn.Module):
+
+class MGRD(Refiner):
     SECTION_LABELS = {"weights": ""}        # its one section: "mgrd" in pgs info and reports
 
     def __init__(self, model, cfg):
@@ -46,8 +48,6 @@ class MGRD(nn.Module):
     def bake_heads(self, values):
         """Both heads for :class:`~baseline.scaffold.baked.BakedDecoder` (values: all anchors'
         decoded values): shape -> cov, appearance -> opacity (channel 0) and color (1-3)."""
-        from baseline.scaffold.baked import BakeHead
-
         r = values["residual"]
         return [BakeHead(r, self.shape_head, True, {"cov": (0, 7)}),
                 BakeHead(r, self.appearance_head, True, {"opacity": (0, 1), "color": (1, 4)})]

@@ -23,14 +23,15 @@ on the anchor position only, so rendering skips the grid query and the fusion ML
 from __future__ import annotations
 
 from dataclasses import replace
-from typing import Optional
+from typing import Optional, cast
 
 import torch
 import torch.nn as nn
 
-from baseline.contracts import CodedAttribute
+from baseline.codec.fields import dict_field, unknown_keys
+from baseline.contracts import CodedAttribute, FeatureProvider
 from baseline.hac.hashgrid import BinaryHashGrid
-from baseline.scaffold.build import grid_options
+from baseline.hac.layout import check_grid_options, grid_options
 from baseline.scaffold.model import grow_max_of_parents, grow_zeros
 
 # predict.residual_grow -> the grow rule of the residual (baseline.scaffold.model.GrowRule)
@@ -42,7 +43,7 @@ def _layout_from_json(layout: dict) -> dict:
             for k, v in layout.items()}
 
 
-class SpatialFeaturePool(nn.Module):
+class SpatialFeaturePool(FeatureProvider):
     # what its bitstream sections hold (pgs info / reports: "sfp.grid", "sfp.fusion")
     SECTION_LABELS = {"grid": "grid", "weights": "fusion"}
     # its training-semantics version (baseline.config.component_semantics): 4 = its tables
@@ -52,6 +53,7 @@ class SpatialFeaturePool(nn.Module):
     # seed (baseline.scaffold.model); 2 = the fusion MLP's last layer starts at zero
     # (predict.fusion_init = "zero"); 1 = PyTorch's default init
     TRAINING_SEMANTICS = 4
+    caches_features = True          # f_c depends on the anchor position only
 
     def __init__(self, model, cfg, codec_state: Optional[dict] = None):
         """``codec_state``: what :meth:`codec_state` returned when the file was written (the
@@ -91,8 +93,9 @@ class SpatialFeaturePool(nn.Module):
         self.fusion = nn.Sequential(nn.Linear(self.grid.output_dim, p.fusion_hidden), nn.ReLU(),
                                     nn.Linear(p.fusion_hidden, self.feature_dim))
         if p.fusion_init == "zero":
-            nn.init.zeros_(self.fusion[2].weight)
-            nn.init.zeros_(self.fusion[2].bias)
+            out = cast(nn.Linear, self.fusion[2])
+            nn.init.zeros_(out.weight)
+            nn.init.zeros_(out.bias)
         elif p.fusion_init != "default":
             raise ValueError(f"predict.fusion_init must be 'default' or 'zero', got '{p.fusion_init}'")
         self.use_residual = bool(p.residual) and p.residual_dim > 0
@@ -109,6 +112,13 @@ class SpatialFeaturePool(nn.Module):
         """JSON-able construction state the decoder needs besides the config (the file header
         keeps it): the resolved grid layout (tuples become JSON lists)."""
         return {"grid": dict(self.grid_layout)}
+
+    @classmethod
+    def check_codec_state(cls, state, key: str) -> int:
+        """A header's state of the SFP: its grid layout; returns the grid's table entries."""
+        state = dict_field(state, key)
+        unknown_keys(state, ("grid",), key, "entry")
+        return check_grid_options(state["grid"], f"{key}.grid") if "grid" in state else 0
 
     def coded_attributes(self):
         attrs = []

@@ -4,11 +4,22 @@ import shutil
 import pytest
 import torch
 
-from baseline.codec.model_codec import encode_model
+from baseline.modelfile import encode_model
 from baseline.config import build_config
 from baseline.data.scene import load_scene
 from baseline.data.synthetic import make_scene
 from baseline.train.trainer import Trainer
+
+# Fixtures that train a model end to end, and modules whose tests train in their bodies: their
+# tests carry the `slow` mark (`pytest -m "not slow"` runs the rest).
+TRAINING_FIXTURES = {"decoded_files", "trained", "encoded", "local_run", "cuda_run", "hacpp_files"}
+TRAINING_MODULES = {"test_compare.py", "test_benchmark.py", "test_train.py"}
+
+
+def pytest_collection_modifyitems(config, items):
+    for item in items:
+        if TRAINING_FIXTURES & set(item.fixturenames) or item.path.name in TRAINING_MODULES:
+            item.add_marker(pytest.mark.slow)
 
 
 def demo_cfg(iters: int, *sets: str, patches=()):

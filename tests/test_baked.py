@@ -3,7 +3,7 @@ every decoder and refiner head computed once must give the Gaussians of AnchorMo
 import pytest
 import torch
 
-from baseline.codec.model_codec import decode_model
+from baseline.modelfile import decode_model
 from baseline.data.scene import load_scene
 from baseline.eval.evaluate import evaluate
 from baseline.pipeline import render_view, visible_anchors

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import torch
 
-from baseline.codec.model_codec import decode_model
+from baseline.modelfile import decode_model
 from baseline.data.scene import load_scene
 from baseline.eval.census import _pattern_stats, census, psnr_at_gaussians
 from baseline.eval.evaluate import evaluate

@@ -131,7 +131,7 @@ def test_bad_input_gives_a_named_error(trained, tmp_path, capsys):
 
 
 def test_encode_with_float16_weights(trained, capsys):
-    from baseline.codec.model_codec import decode_model, file_info
+    from baseline.modelfile import decode_model, file_info
 
     d, _, run = trained
     f32, f16 = d / "w32.pgs", d / "w16.pgs"
@@ -150,7 +150,7 @@ def test_encode_with_float16_weights(trained, capsys):
 
     import torch
 
-    from baseline.codec.model_codec import encode_model
+    from baseline.modelfile import encode_model
     from baseline.run import load_run
     t, _ = load_run(run, device="cpu")
     cfg = dataclasses.replace(t.cfg, codec=dataclasses.replace(t.cfg.codec, weight_dtype="float16"))
@@ -232,7 +232,6 @@ def test_small_things_a_new_user_meets(tmp_path, capsys):
     """--version; pgs info on a file that is not a .pgs names it; a wrong scene path leaves no
     output folder; make-scene refuses sizes below 1 with a message, not a traceback."""
     import subprocess
-    import sys
     from pathlib import Path
 
     with pytest.raises(SystemExit) as e:
@@ -312,7 +311,6 @@ def test_a_run_folder_is_owned_by_one_process(tmp_path):
     re-entrant in its process and goes with the process, however it ends."""
     import subprocess
     import sys
-    import time
 
     from baseline.guard import OutputError, RunLock
 

@@ -1,5 +1,4 @@
 """Lossless voxel-lattice positions (codec.positions = "lattice", HAC++'s kind of coding)."""
-import dataclasses
 
 import numpy as np
 import pytest
@@ -9,7 +8,7 @@ from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
 from baseline.codec.container import BitstreamError
-from baseline.codec.fuzz import fuzz_parser
+from baseline.testing.fuzz import fuzz_parser
 from baseline.codec.lattice import (MAX_DEPTH, decode_lattice, encode_lattice, lattice_coordinates,
                                     lattice_positions)
 from baseline.codec.positions import encode_positions
@@ -139,13 +138,13 @@ def test_damage_is_named_never_a_crash():
 
 
 def test_position_coders_tool_ranks_the_coders():
-    """tools/position_coders.py: every coder round-trips (checked inside) and the lattice coder
+    """tools/probes/position_coders.py: every coder round-trips (checked inside) and the lattice coder
     is the smallest on an anchor-like set."""
     import importlib.util
     import pathlib
 
     spec = importlib.util.spec_from_file_location(
-        "position_coders", pathlib.Path(__file__).parents[1] / "tools" / "position_coders.py")
+        "position_coders", pathlib.Path(__file__).parents[1] / "tools" / "probes" / "position_coders.py")
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
     xyz = lattice_positions(_surface(6000, 7), 0.02)

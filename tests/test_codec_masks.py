@@ -6,7 +6,7 @@ from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
 from baseline.codec.container import BitstreamError
-from baseline.codec.fuzz import fuzz_parser
+from baseline.testing.fuzz import fuzz_parser
 from baseline.codec.masks import decode_mask_patterns, encode_mask_patterns, mask_pattern_counts
 from baseline.codec.rangecoder import encode_bernoulli
 

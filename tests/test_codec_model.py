@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from baseline.codec.container import BitstreamError, read_container
-from baseline.codec.model_codec import (decode_model, encode_model, file_info, format_info,
+from baseline.modelfile import (decode_model, encode_model, file_info, format_info,
                                         format_rate_check, rate_check)
 from baseline.data.scene import load_scene
 from baseline.eval.evaluate import evaluate
@@ -72,7 +72,7 @@ def test_decode_with_other_thread_count(encoded, tmp_path):
     out = tmp_path / "vals.pt"
     code = ("import torch, sys; torch.set_num_threads(2);"
             "from baseline import registry; registry.ensure_loaded();"
-            "from baseline.codec.model_codec import decode_model;"
+            "from baseline.modelfile import decode_model;"
             f"d = decode_model(r'{encoded['path']}');"
             f"torch.save(d.model.fixed_values, r'{out}')")
     torch.set_num_threads(1)

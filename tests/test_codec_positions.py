@@ -6,7 +6,7 @@ from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
 from baseline.codec.container import BitstreamError
-from baseline.codec.fuzz import fuzz_parser
+from baseline.testing.fuzz import fuzz_parser
 from baseline.codec.positions import (decode_positions, decode_uints, encode_positions,
                                       encode_uints, morton, unmorton)
 

@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from baseline.codec.container import BitstreamError
-from baseline.codec.fuzz import fuzz_parser
+from baseline.testing.fuzz import fuzz_parser
 from baseline.codec.rangecoder import (GaussianStreamDecoder, GaussianStreamEncoder, anchor_bounds,
                                        decode_bernoulli, dequantize_positions, encode_bernoulli,
                                        pack_positions, quantize_positions, unpack_positions)

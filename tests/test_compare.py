@@ -9,7 +9,7 @@ import torch
 
 import baseline.run as run_mod
 from baseline import registry
-from baseline.codec.model_codec import file_info
+from baseline.modelfile import file_info
 from baseline.config import ConfigError
 from baseline.data.synthetic import make_scene
 from baseline.eval.compare import (BASELINE, MODEL_FILE, RECORD, RECORD_FILES, archive_records,

@@ -126,8 +126,8 @@ def test_every_shipped_patch_builds_and_changes_something():
     """Each file in patches/ parses, names only known keys, and changes the configuration
     (except `low-rate` and `tandt`, which restate defaults by name: lambda 0.004, and the
     Tanks&Temples voxel 0.01 / growing cells 16)."""
-    from baseline.config import PATCH_DIR, default_config, to_dict
-    names = sorted(p.stem for p in PATCH_DIR.glob("*.toml"))
+    from baseline.config import default_config, patch_infos, to_dict
+    names = sorted(patch_infos())
     assert "masks-x4" in names and "predict-gs" in names
     base = to_dict(default_config(), drop_meta=True)
     for name in names:
@@ -241,3 +241,43 @@ def test_truck_hacpp_archive_is_what_its_command_plans_today(tmp_path):
     # every archived run is planned; the one planned run not archived was never trained
     assert archived <= planned, sorted(archived - planned)
     assert [n.rsplit("-", 1)[0] for n in planned - archived] == ["predict-gs-l0.0005-s1"]
+
+
+def test_every_shipped_patch_declares_its_kind_and_description():
+    """Each shipped patch (the baseline's folder and every plugin's) names one of the kinds and
+    says in one line what it does; a method's label is what the reports call it."""
+    from baseline.config import PATCH_KINDS, method_specs, patch_infos
+
+    infos = patch_infos()
+    assert {i.path.parent.name for i in infos.values()} == {"patches"}
+    assert {i.path.parent.parent.name for i in infos.values()} == {"baseline", "predict_plugin"}
+    for name, info in infos.items():
+        assert info.kind in PATCH_KINDS, (name, info.kind)
+        assert info.description and "\n" not in info.description, name
+    assert infos["predict-gs"].kind == "method" and infos["cpu"].kind == "preset"
+    specs = method_specs()
+    assert specs["predict-gs"].label == "Predict-GS" and specs["hacpp"].label == "HAC++"
+    assert set(specs["predict-gs"].patches) <= set(infos)
+    # the plugin's patches live in its own folder
+    assert all(infos[p].path.parent.parent.name == "predict_plugin"
+               for p in specs["predict-gs"].patches)
+
+
+def test_config_list_groups_the_patches_by_kind(capsys):
+    from baseline.cli import main
+    from baseline.config import PATCH_KINDS, patch_infos
+
+    assert main(["config", "--list"]) == 0
+    out = capsys.readouterr().out
+    heads = [line.split(" (")[0] for line in out.splitlines() if not line.startswith(" ")]
+    assert heads == [k for k in PATCH_KINDS if any(i.kind == k for i in patch_infos().values())]
+    for name, info in patch_infos().items():
+        line = next(x for x in out.splitlines() if x.split() and x.split()[0] == name)
+        assert line.rstrip().endswith(info.description)
+    # the patch that follows a kind's header is of that kind
+    kind = None
+    for line in out.splitlines():
+        if not line.startswith(" "):
+            kind = line.split(" (")[0]
+        else:
+            assert patch_infos()[line.split()[0]].kind == kind

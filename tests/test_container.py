@@ -9,7 +9,7 @@ from hypothesis import strategies as st
 
 from baseline.codec.container import (FORMAT_VERSION, MAGIC, BitstreamError, build_container,
                                       read_container, write_container)
-from baseline.codec.fuzz import check_parse, fuzz_parser
+from baseline.testing.fuzz import check_parse, fuzz_parser
 
 HEADER = {"format": "pgs", "n_anchors": 1234, "bounds": [[-1.5, 0.25, 3.0], [2.0, 4.5, 9.0]],
           "attrs": [["feat", 50, 1.0, False]]}

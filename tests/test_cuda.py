@@ -11,7 +11,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from baseline.codec.model_codec import decode_model, encode_model
+from baseline.modelfile import decode_model, encode_model
 from baseline.config import ConfigError, build_config, config_hash
 from baseline.data.synthetic import make_scene
 from baseline.device import DeviceError, resolve_device, uniform

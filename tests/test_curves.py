@@ -1,9 +1,9 @@
-"""The training-curve summary of a run (baseline.eval.curves) and its report table."""
+"""The training-curve summary of a run (baseline.eval.report.curves) and its report table."""
 import json
 
 import pytest
 
-from baseline.eval.curves import summarize, train_curve
+from baseline.eval.report.curves import summarize, train_curve
 
 
 def _log(its, bits_from=None):

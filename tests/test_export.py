@@ -56,7 +56,7 @@ def test_sh_fit_is_exact_on_colours_that_are_spherical_harmonics():
 def test_view_union_export_is_a_faithful_3dgs_ply(decoded_files, tmp_path):
     """The decoded model's Gaussians as one static 3DGS set: the union over the training views
     of those drawn, SH colours, header comments with the measured fidelity, which is high."""
-    from baseline.codec.model_codec import decode_model
+    from baseline.modelfile import decode_model
     from baseline.data.scene import load_scene
     from baseline.eval.export import export_sh_ply, union_gaussians
 

@@ -6,7 +6,7 @@ import statistics
 import pytest
 import torch
 
-from baseline.codec.model_codec import decode_model
+from baseline.modelfile import decode_model
 from baseline.data.scene import load_scene
 from baseline.eval import fpsbench
 from baseline.eval.evaluate import evaluate
@@ -189,14 +189,14 @@ def test_frame_bench_times_each_stage_against_its_reference_form(files, capsys):
 
 
 def test_gpu_fps_tool_exports_cameras_and_times_at_each_scale(files, tmp_path):
-    """tools/gpu_fps.py (for machines without the scene): the exported cameras are the test
+    """tools/gpu/gpu_fps.py (for machines without the scene): the exported cameras are the test
     views of the file's scene; the bench decodes once and times every model at each scale."""
     import importlib.util
     import json
     from pathlib import Path
 
     spec = importlib.util.spec_from_file_location(
-        "gpu_fps", Path(__file__).resolve().parents[1] / "tools" / "gpu_fps.py")
+        "gpu_fps", Path(__file__).resolve().parents[1] / "tools" / "gpu" / "gpu_fps.py")
     tool = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(tool)
     cams_file = tmp_path / "cams.pt"

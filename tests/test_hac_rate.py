@@ -1,4 +1,4 @@
-"""HAC's rate term as its reference code trains it (SPEC.md section 3), and the near plane.
+"""HAC's rate term as its reference code trains it (docs/method.md section 3), and the near plane.
 
 * the offsets' bits are weighted by the straight-through *float* Gaussian mask, so the rate's
   gradient reaches the mask logits (forward 0/1, backward the sigmoid's gradient);

@@ -162,7 +162,7 @@ def _train(scene, out, patches):
 
 @pytest.fixture(scope="module")
 def hacpp_files(small_scene, tmp_path_factory):
-    from baseline.codec.model_codec import encode_model
+    from baseline.modelfile import encode_model
     d = tmp_path_factory.mktemp("hacpp")
     out = {}
     # the hacpp composition: entropy model, mask training and lattice positions
@@ -176,7 +176,7 @@ def hacpp_files(small_scene, tmp_path_factory):
 
 @pytest.mark.parametrize("name", ["hac", "pgs"])
 def test_hac_and_predict_gs_round_trip_with_hacpp(hacpp_files, name):
-    from baseline.codec.model_codec import decode_model, file_info
+    from baseline.modelfile import decode_model, file_info
     t, st, path = hacpp_files[name]
     assert t.entropy.kind == "hacpp"
     assert t.entropy.main == ("feat" if name == "hac" else "residual")
@@ -201,8 +201,8 @@ def test_float16_weights_decode_and_a_header_contradicting_them_is_refused(hacpp
     import dataclasses
 
     from baseline.codec.container import BitstreamError, read_container
-    from baseline.codec.hostile import _resign
-    from baseline.codec.model_codec import decode_model, encode_model
+    from baseline.testing.hostile import _resign
+    from baseline.modelfile import decode_model, encode_model
     t, _, _ = hacpp_files[name]
     model, entropy = copy.deepcopy(t.model), copy.deepcopy(t.entropy)
     cfg = dataclasses.replace(t.cfg, codec=dataclasses.replace(t.cfg.codec, weight_dtype="float16"))
@@ -222,7 +222,7 @@ def test_hacpp_file_decodes_identically_with_two_threads(hacpp_files, tmp_path):
     out = tmp_path / "vals.pt"
     code = ("import torch; torch.set_num_threads(2); assert torch.get_num_threads() == 2;"
             "from baseline import registry; registry.ensure_loaded();"
-            "from baseline.codec.model_codec import decode_model;"
+            "from baseline.modelfile import decode_model;"
             f"torch.save(decode_model(r'{path}').model.fixed_values, r'{out}')")
     subprocess.run([sys.executable, "-c", code], check=True,
                    env=dict(os.environ, OMP_NUM_THREADS="2"))
@@ -232,7 +232,7 @@ def test_hacpp_file_decodes_identically_with_two_threads(hacpp_files, tmp_path):
 
 
 def test_damaged_hacpp_files_give_clean_errors(hacpp_files):
-    from baseline.codec.hostile import crafted_cases, run_cases
+    from baseline.testing.hostile import crafted_cases, run_cases
     files = {n: hacpp_files[n][2].read_bytes() for n in ("hac", "pgs")}
     cases = [c for c in crafted_cases(files, n_random=30, seed=2)
              if any(k in c.name for k in ("truncated", "flipped", "overwritten", "taken from",

@@ -9,14 +9,14 @@ from __future__ import annotations
 
 import os
 
-from baseline.codec.hostile import crafted_cases, run_cases
+from baseline.testing.hostile import crafted_cases, run_cases
 
 
 def test_hostile_files_are_refused_cleanly(decoded_files, tmp_path):
     import dataclasses
     import json
 
-    from baseline.codec.model_codec import encode_model
+    from baseline.modelfile import encode_model
     from baseline.run import load_run
 
     files = {name: (decoded_files[name] / "model.pgs").read_bytes()
@@ -51,7 +51,7 @@ def test_hostile_lattice_position_files_are_refused_cleanly(decoded_files, tmp_p
     import dataclasses
     import json
 
-    from baseline.codec.model_codec import encode_model
+    from baseline.modelfile import encode_model
     from baseline.run import load_run
 
     run = decoded_files["baseline"]
@@ -76,7 +76,7 @@ def test_special_and_sparse_inputs_are_refused_cleanly(decoded_files):
     valid) and extended sparsely to match: each refused with one line naming it, within the
     worker's 1 GiB memory cap (a reader that kept the section before its CRC failed would hit
     it) and its timeout (a blocking open or an endless read would hang)."""
-    from baseline.codec.hostile import special_cases
+    from baseline.testing.hostile import special_cases
 
     files = {"baseline": (decoded_files["baseline"] / "model.pgs").read_bytes()}
     cases = special_cases(files)

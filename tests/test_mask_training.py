@@ -79,7 +79,7 @@ def test_hacpp_rate_over_all_anchors_with_anchor_masks(scene, tmp_path):
                                      ["predict-gs", "masks-hacpp", "entropy-hacpp"],
                                      ["predict-gs", "masks-hacpp"]])
 def test_training_and_exact_coding_with_hacpps_masks(small_scene, tmp_path, patches):
-    from baseline.codec.model_codec import decode_model, encode_model
+    from baseline.modelfile import decode_model, encode_model
     torch.set_num_threads(1)
     t = Trainer(demo_cfg(150, patches=patches), load_scene(small_scene), tmp_path / "r",
                 progress=False)
@@ -92,12 +92,12 @@ def test_training_and_exact_coding_with_hacpps_masks(small_scene, tmp_path, patc
 
 
 def test_mask_state_tool_reads_logits_and_adam_steps(tmp_path):
-    """tools/mask_state.py: masks off below logit(0.01); Adam's mean step over the learning rate
+    """tools/probes/mask_state.py: masks off below logit(0.01); Adam's mean step over the learning rate
     is ~1 under a steady gradient and far below 1 when the same push comes in rare kicks."""
     import importlib.util
     import pathlib
     spec = importlib.util.spec_from_file_location(
-        "mask_state", pathlib.Path(__file__).parents[1] / "tools" / "mask_state.py")
+        "mask_state", pathlib.Path(__file__).parents[1] / "tools" / "probes" / "mask_state.py")
     tool = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(tool)
 

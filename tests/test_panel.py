@@ -6,10 +6,10 @@ import pytest
 import torch
 
 from baseline.codec.container import read_container
-from baseline.codec.model_codec import coded_bits_per_anchor, decode_model
+from baseline.modelfile import coded_bits_per_anchor, decode_model
 from baseline.data.images import read_image
 from baseline.data.scene import load_scene
-from baseline.eval.panel import bit_map, view_panel
+from baseline.eval.report.panel import bit_map, view_panel
 
 
 def test_panel_images_and_bit_map_totals(decoded_files, tmp_path):

@@ -151,7 +151,7 @@ def test_auto_sized_sfp_decodes_after_the_anchor_count_changed(tmp_path):
     """With predict.grid_auto the SFP grid is sized from the anchors at the start of training;
     the file keeps that layout (codec_state), so a model whose anchor count changed since (growing)
     decodes to the same grid and the same predicted features."""
-    from baseline.codec.model_codec import decode_model, encode_model, file_info
+    from baseline.modelfile import decode_model, encode_model, file_info
     from baseline.scaffold.build import build_entropy
 
     torch.set_num_threads(1)
@@ -175,7 +175,7 @@ def test_auto_sized_sfp_decodes_after_the_anchor_count_changed(tmp_path):
     # a damaged state in the header is a clear bitstream error, not a crash
     # (the header re-signed as an encoder would: only its content is wrong)
     from baseline.codec.container import BitstreamError, read_container
-    from baseline.codec.hostile import _resign
+    from baseline.testing.hostile import _resign
     header, sections = read_container(tmp_path / "m.pgs")
     header["module_state"]["provider"] = {"grid": "junk"}
     (tmp_path / "bad.pgs").write_bytes(_resign(header, list(sections.items())))
@@ -336,7 +336,7 @@ def test_contracted_sfp_box_is_the_inner_quantiles_and_decodes_the_same(tmp_path
     positions inside map linearly onto the middle half of the grid, far ones into the outer
     shell (never outside [0, 1)), continuously at the box face; a decoded model reads the same
     f_c (the flag comes from the config, the bounds from the file)."""
-    from baseline.codec.model_codec import decode_model, encode_model
+    from baseline.modelfile import decode_model, encode_model
     from baseline.hac.hashgrid import contract_unit
     from baseline.scaffold.build import build_entropy
 
@@ -380,14 +380,14 @@ def test_contracted_sfp_box_is_the_inner_quantiles_and_decodes_the_same(tmp_path
 
 
 def test_scene_facts_tool(decoded_files, capsys):
-    """tools/scene_facts.py: the camera layout and point boxes of a scene, and per run the
+    """tools/probes/scene_facts.py: the camera layout and point boxes of a scene, and per run the
     anchors and (Predict-GS only) the SFP's box over the anchors' inner box."""
     import importlib.util
     import json
     import pathlib
 
     spec = importlib.util.spec_from_file_location(
-        "scene_facts", pathlib.Path(__file__).parents[1] / "tools" / "scene_facts.py")
+        "scene_facts", pathlib.Path(__file__).parents[1] / "tools" / "probes" / "scene_facts.py")
     tool = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(tool)
     runs = [str(decoded_files["baseline"]), str(decoded_files["predict-gs"])]
@@ -404,7 +404,7 @@ def test_scene_facts_tool(decoded_files, capsys):
 
 
 def test_kept_share_probe_tool(small_scene, capsys):
-    """tools/kept_share_probe.py: with one seed it measures HAC's and Predict-GS's start (one row
+    """tools/probes/kept_share_probe.py: with one seed it measures HAC's and Predict-GS's start (one row
     each; with the SFP's earlier zero fusion layer, f_c = 0 as HAC's features, the two starts are
     the same decoder on the same input); a short training reports each asked step."""
     import importlib.util
@@ -412,7 +412,7 @@ def test_kept_share_probe_tool(small_scene, capsys):
     import pathlib
 
     spec = importlib.util.spec_from_file_location(
-        "kept_share_probe", pathlib.Path(__file__).parents[1] / "tools" / "kept_share_probe.py")
+        "kept_share_probe", pathlib.Path(__file__).parents[1] / "tools" / "probes" / "kept_share_probe.py")
     tool = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(tool)
     assert tool.main([str(small_scene), "--patch", "demo", "--init-seeds", "1"]) == 0

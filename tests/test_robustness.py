@@ -172,7 +172,7 @@ def test_allocation_failures_become_one_named_line():
 
 def test_the_cli_names_allocation_failures_and_keeps_internal_error_for_bugs(
         decoded_files, tmp_path, monkeypatch, capsys):
-    import baseline.codec.model_codec as mc
+    import baseline.modelfile as mc
 
     f = decoded_files["noscene"]
 
@@ -202,7 +202,7 @@ def test_a_decode_over_the_machine_under_a_raised_budget_is_named(decoded_files,
     import sys
 
     from baseline.codec.container import _parse
-    from baseline.codec.hostile import _edit, _resign
+    from baseline.testing.hostile import _edit, _resign
 
     h, s = _parse((decoded_files["baseline"] / "model.pgs").read_bytes(), "x")
     for path, v in (("entropy.grid.log2_table_3d", 24), ("entropy.grid.n_features", 16),
@@ -252,7 +252,7 @@ def test_anchors_far_outside_the_scene_are_refused(run_copy, key, value, what, c
 
 def test_a_file_far_outside_its_scene_is_refused_at_encode_and_decode(decoded_files, tmp_path,
                                                                     capsys):
-    from baseline.codec.model_codec import encode_model
+    from baseline.modelfile import encode_model
     from baseline.data.scene import load_scene, scene_bounds
     from baseline.run import load_run
 

@@ -1,7 +1,6 @@
 """`pgs bench train`: per-stage times of training steps, for run folders or a synthetic state."""
 from __future__ import annotations
 
-import json
 
 from baseline.cli import main
 from baseline.timing import StageTimer, stage, timing

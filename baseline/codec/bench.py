@@ -172,7 +172,7 @@ def run_model_codec_bench(run_dir: str) -> Dict:
     import tempfile
     from pathlib import Path
 
-    from baseline.codec.model_codec import decode_model, encode_model
+    from baseline.modelfile import decode_model, encode_model
     from baseline.run import load_run
 
     trainer, _ = load_run(run_dir, device="cpu")       # the codec runs on the CPU

@@ -7,7 +7,7 @@ with an exact area filter (:func:`baseline.data.images.resize_area`) and cached 
 uint8 PNGs; :meth:`Scene.image` reads one image back from the cache, so memory stays bounded
 whatever the number of views.
 
-Protocol (SPEC section 1), all recorded in ``Scene.protocol``:
+Protocol (docs/method.md section 1), all recorded in ``Scene.protocol``:
 
 * Views are sorted by image name (plain string order, as 3DGS does for COLMAP; Blender frame
   names such as ``train/r_10`` sort in natural order, digits numerically, which is the file

@@ -16,8 +16,8 @@ comparison report is written (``pgs compare`` reusing every run), then the datas
 * the survey CSVs, one per method and scene (``survey/<method>/<Dataset>/<scene>.csv``: each
   method's folder laid out as the 3DGS compression survey reads a method's ``results/``).
 
-Protocols (``--protocol``) add the dataset's HAC patch: ``mip360``, ``tandt``,
-``deepblending``, ``nerf-synthetic``.
+Protocols (``--protocol``) add a dataset patch (kind ``dataset``, ``pgs config --list``):
+``mip360``, ``tandt``, ``deepblending``, ``nerf-synthetic``.
 """
 from __future__ import annotations
 
@@ -29,11 +29,9 @@ from typing import Optional
 
 from baseline.eval.compare import BASELINE, parse_methods, plan_runs, is_finished, lpips_id
 from baseline.eval.executors import Job, make_executor
+from baseline.eval.report import survey_datasets
 from baseline.fileio import read_text_bounded, write_text_atomic
 
-PROTOCOLS = {"mip360": ("MipNeRF360", "mip360"), "tandt": ("TanksAndTemples", "tandt"),
-             "deepblending": ("DeepBlending", "deepblending"),
-             "nerf-synthetic": ("SyntheticNeRF", "nerf-synthetic")}
 MB = 2 ** 20
 
 
@@ -97,9 +95,9 @@ def run_benchmark(root, out, vs: list[str] = (), lambdas=None, seeds=None, scene
     check_output(out, command="benchmark", source=root, folder=True, overwrite=overwrite)
     common = list(common_patches)
     if protocol is not None:
-        if protocol not in PROTOCOLS:
-            raise ValueError(f"--protocol {protocol!r}: one of {', '.join(PROTOCOLS)}")
-        common = [PROTOCOLS[protocol][1]] + common
+        if protocol not in survey_datasets():
+            raise ValueError(f"--protocol {protocol!r}: one of {', '.join(survey_datasets())}")
+        common = [protocol] + common
     scene_dirs = find_scenes(Path(root), scenes)
     write_marker(out, "benchmark", root)
     allruns, jobs = plan_jobs(scene_dirs, out, list(vs), lambdas, seeds, common, list(sets),
@@ -120,7 +118,7 @@ def run_benchmark(root, out, vs: list[str] = (), lambdas=None, seeds=None, scene
                         progress=False, plots=plots, echo=False, report_only=True,
                         panel_views=None if plots else [])
         per_scene[sc.name] = r
-    dataset = PROTOCOLS[protocol][0] if protocol else Path(root).name
+    dataset = survey_datasets()[protocol] if protocol else Path(root).name
     results = {"format": "pgs-benchmark/1", "root": str(Path(root).resolve()),
                "dataset": dataset, "protocol": protocol, "scenes": [s.name for s in scene_dirs],
                "methods": [m.name for m in parse_methods(list(vs))], "lambdas": lambdas,

@@ -12,9 +12,10 @@ mask is on and its opacity is above 0 (Scaffold-GS's rule). The census splits th
   nearest visible neighbour's, beside the same for a random visible anchor
   (``pattern_equal_random``; patterns shared by chance), and the mean Hamming distances;
   anchors with every mask off are left out;
-* ``by_birth``: the kept share of the initial anchors and of the grown ones (for a method
-  with stages, grown before and after ``predict.residual_from``); only for a run folder of a
-  training that kept its anchors' births (a ``.pgs`` file does not carry them);
+* ``by_birth``: the kept share of the initial anchors and of the grown ones (for a training
+  whose hooks declare stages, :meth:`~baseline.contracts.TrainingHook.stage_starts`: grown in
+  each stage); only for a run folder of a training that kept its anchors' births (a ``.pgs``
+  file does not carry them);
 * ``sweep``: the test views rendered with the opacity threshold raised (Gaussians per view and
   PSNR at each), so that :func:`psnr_at_gaussians` tells the PSNR a model keeps when its count
   is cut to another model's, i.e. whether its extra Gaussians are dead weight; and
@@ -31,6 +32,7 @@ from typing import Optional, Sequence
 import numpy as np
 import torch
 
+from baseline import registry
 from baseline.eval.metrics import psnr, to_uint8
 from baseline.render import prefilter_anchors, rasterize
 
@@ -74,10 +76,10 @@ def _birth_buckets(model, cfg) -> Optional[tuple[list[str], torch.Tensor]]:
         return None
     bucket = (birth > 0).long()
     names = ["initial", "grown"]
-    staged = cfg is not None and "predict_stages" in cfg.train.hooks
-    p = cfg.ext.get("predict") if staged else None
-    if p is not None and p.residual:
-        stage2 = cfg.train.at(p.residual_from)
+    starts = sorted({s for h in (cfg.train.hooks if cfg is not None else ())
+                     for s in registry.component_class("hooks", h).stage_starts(cfg)})
+    if len(starts) == 1:                # a training of two stages: grown in each
+        stage2 = starts[0]
         bucket = torch.where(birth > stage2, torch.full_like(bucket, 2), bucket)
         names = ["initial", f"grown <= it {stage2} (stage 1)", f"grown > it {stage2}"]
     return names, bucket
@@ -93,7 +95,7 @@ def census(model, scene, cameras, *, coded=None, cfg=None, backend: str = "auto"
     """
     refiner = model.refiner
     has_refiner = refiner is not None and refiner.active
-    baked = getattr(model, "baked", None)
+    baked = model.baked
     if baked is not None:       # the census reads the heads' raw outputs: the plain form
         model.unbake()
     buckets = _birth_buckets(model, cfg)

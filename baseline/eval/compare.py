@@ -45,13 +45,13 @@ from tqdm import tqdm
 
 from baseline.config import Config, build_config, config_hash
 from baseline.contracts import feature_cache
+from baseline.modelfile import MODEL_FILE
 
 # evaluate()'s breakdown of the Gaussians per view (baseline/eval/evaluate.py alive_breakdown)
 ALIVE_KEYS = ("visible_anchors_mean", "mask_on_fraction", "opacity_kept_fraction")
 
 BASELINE = "baseline"
 RECORD = "compare.json"
-MODEL_FILE = "model.pgs"
 RESULTS_FORMAT = "pgs-compare/1"
 # the decoded file's views of a run: renders/, gt/ and per_view.json (3DGS's layout)
 DECODED_VIEWS = "decoded"
@@ -421,7 +421,7 @@ def _write_record(spec: RunSpec, record: dict) -> None:
 
 def _stage_encode(spec: RunSpec, scene_path: str, record: dict,
                   codec: Optional[dict] = None) -> None:
-    from baseline.codec.model_codec import encode_model, file_info
+    from baseline.modelfile import encode_model, file_info
     from baseline.config import CodecConfig
     from baseline.run import file_header, load_run
 
@@ -446,7 +446,7 @@ def _stage_encode(spec: RunSpec, scene_path: str, record: dict,
 
 def _add_file_counts(enc: dict, info: dict) -> None:
     """Counts read from the file (not measurements): masks on and, per coded attribute, the
-    values coded and bits per value (:func:`baseline.codec.model_codec.coded_elements`)."""
+    values coded and bits per value (:func:`baseline.modelfile.coded_elements`)."""
     enc["attributes"] = info.get("attributes", [])
     enc["masks_on"] = info.get("masks_on")
 
@@ -454,7 +454,7 @@ def _add_file_counts(enc: dict, info: dict) -> None:
 def _fill_file_counts(spec: RunSpec, record: dict) -> bool:
     """Records written before the counts existed get them from the model file, when it is still
     there and is the one recorded (same size). Returns whether the record changed."""
-    from baseline.codec.model_codec import file_info
+    from baseline.modelfile import file_info
 
     enc = record.get("encode") or {}
     pgs = spec.dir / MODEL_FILE
@@ -466,7 +466,7 @@ def _fill_file_counts(spec: RunSpec, record: dict) -> bool:
 
 def _stage_decoded(spec: RunSpec, scene_path: str, record: dict, lpips_fn,
                    lpips: Optional[str]) -> None:
-    from baseline.codec.model_codec import decode_model
+    from baseline.modelfile import decode_model
     from baseline.device import device_name, resolve_device
     from baseline.eval.evaluate import evaluate
     from baseline.render import resolve_backend
@@ -574,7 +574,7 @@ def _run_stages(spec, scene_path, lpips_fn, lpips, progress, stage, remeasure, c
         _stage_census(spec, record)
         done.append("census")
     if "train_curve" not in record and not records_only(spec):
-        from baseline.eval.curves import train_curve
+        from baseline.eval.report.curves import train_curve
 
         curve = train_curve(spec.dir, res.get("iterations"))
         if curve is not None:           # derived from the training log; nothing is measured
@@ -666,7 +666,7 @@ def make_row(spec: RunSpec, res: dict, record: dict) -> dict:
         "records_only": records_only(spec),
         # the Gaussian census (absent from records written before it was kept)
         "census": record.get("census"),
-        # the training curve's summary (baseline.eval.curves; absent from older records)
+        # the training curve's summary (baseline.eval.report.curves; absent from older records)
         "train_curve": record.get("train_curve"),
         # why its training time is no measurement, where a user marked it (mark_untimed)
         "untimed": record.get("untimed"),

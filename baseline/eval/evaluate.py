@@ -53,7 +53,7 @@ def evaluate(model, scene, cameras, *, phase: str, entropy=None, backend: str = 
     """Render ``cameras`` and report PSNR / SSIM (/ LPIPS) on uint8 images and FPS.
 
     FPS = 1 / mean(prefilter + decode + render time), the first ``fps_skip`` frames skipped
-    (SPEC.md section 2); on a GPU each frame is timed to the end of its work. The model renders
+    (docs/method.md section 2); on a GPU each frame is timed to the end of its work. The model renders
     where it lives (``model.to(device)`` first). ``coded``: a trained model in the adaptive phase
     rendered as the codec stores it (:func:`baseline.pipeline.coded_state`).
 

@@ -1,4 +1,4 @@
-"""Where the independent runs of a benchmark execute (DESIGN.md, "Executors").
+"""Where the independent runs of a benchmark execute.
 
 A run is a :class:`Job`: a scene, a comparison folder and one run's method, lambda and seed,
 all that :func:`run_job` needs to rebuild its :class:`~baseline.eval.compare.RunSpec` and bring

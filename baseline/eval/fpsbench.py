@@ -26,9 +26,9 @@ from typing import List, Optional, Sequence
 
 import torch
 
-from baseline.codec.model_codec import decode_model
+from baseline.modelfile import decode_model
 from baseline.contracts import feature_cache
-from baseline.eval.compare import MODEL_FILE
+from baseline.modelfile import MODEL_FILE
 from baseline.pipeline import render_view
 
 

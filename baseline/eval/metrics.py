@@ -1,6 +1,6 @@
 """Image quality metrics, computed the way the 3DGS papers report them.
 
-Every metric first rounds both images to uint8, ``round(clamp(x, 0, 1) * 255)`` (SPEC section 1:
+Every metric first rounds both images to uint8, ``round(clamp(x, 0, 1) * 255)`` (docs/method.md section 1:
 "metrics are computed on images rounded to uint8"); uint8 inputs are used as they are. Images are
 channel-last ``[H, W, C]`` (torch tensors or numpy arrays), like ``Scene.image``.
 

@@ -1,4 +1,4 @@
-"""HAC: binarized hash-grid context, adaptive quantization and entropy models (SPEC.md 3).
+"""HAC: binarized hash-grid context, adaptive quantization and entropy models (docs/method.md section 3).
 
 Importing this package registers the entropy models ``hac``, ``hacpp`` (HAC++'s hyperprior,
 channel context and mixture) and ``factorized`` in the ``entropy_model`` registry kind.

@@ -2,7 +2,7 @@
 
 Registered as ``entropy_model`` components (see :mod:`baseline.hac`):
 
-* ``hac``        — HAC's hash-grid context model (SPEC.md 3): a :class:`BinaryHashGrid` queried at
+* ``hac``        — HAC's hash-grid context model (docs/method.md section 3): a :class:`BinaryHashGrid` queried at
   the anchor position, then ``Linear(96, 100) ReLU Linear(100, sum(2 d) + n_attrs)`` giving per
   attribute a mean and a scale per value (scale clamped >= 1e-9, no activation, as HAC) and
   one quantization-step adjustment per anchor (``Q = q0 (1 + tanh(adj))``). For the baseline
@@ -56,14 +56,17 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from baseline.contracts import CodedAttribute
+from baseline import registry
 from baseline.codec.container import BitstreamError
-from baseline.codec.header import MAX_CHUNK, MAX_ESCAPE
+from baseline.codec.fields import bool_field, header_error, int_field, unknown_keys
+from baseline.codec.format import MAX_CHUNK, MAX_ESCAPE, MAX_HIDDEN
+from baseline.contracts import CodedAttribute
 from baseline.codec.rangecoder import (DEFAULT_ESCAPE_LIMIT, GaussianStreamDecoder,
                                        GaussianStreamEncoder)
 from baseline.codec.weights import pack_state_dict, round_module_, unpack_state_dict
 from baseline.hac.exact import ExactMLP, det_exp, det_tanh
 from baseline.hac.hashgrid import FEATURE_BITS, BinaryHashGrid
+from baseline.hac.layout import check_grid_options, grid_options
 from baseline.hac.quant import (Q_FLOOR, adaptive_q, clamp_halfwidth, noise_quantize, ste_round,
                                 ste_round_q)
 
@@ -89,9 +92,32 @@ def gaussian_bits(x, mean, scale, q) -> torch.Tensor:
 
 
 class EntropyModel(nn.Module):
-    """Base class: attribute bookkeeping, training forward, and the shared coding loop."""
+    """Base class: attribute bookkeeping, training forward, and the shared coding loop
+    (implements :class:`baseline.contracts.EntropyModel`)."""
 
     kind = "base"
+    SECTION_LABELS: dict = {}
+    TRAINING_SEMANTICS = 1
+    # the fields of its header entry (:meth:`config`, plus the coding options)
+    HEADER_KEYS = frozenset({"kind", "n_masks", "attrs", "chunk", "escape_limit", "pipeline"})
+
+    @classmethod
+    def build(cls, cfg, attrs: Sequence[CodedAttribute], n_masks: int, n_anchors: int):
+        """The model a training config selects (``cfg.entropy``), its head sized from ``attrs``."""
+        return cls(attrs, n_masks)
+
+    @classmethod
+    def check_header(cls, entry: dict, key: str) -> int:
+        """Check the options of a file header's entry of this model (kind, masks and attributes
+        are checked by the header); returns the hash-grid entries it makes the decoder build."""
+        unknown_keys(entry, cls.HEADER_KEYS, key)
+        if "chunk" in entry:
+            int_field(entry["chunk"], f"{key}.chunk", 1, MAX_CHUNK)
+        if "escape_limit" in entry:
+            int_field(entry["escape_limit"], f"{key}.escape_limit", 1, MAX_ESCAPE)
+        if "pipeline" in entry:
+            bool_field(entry["pipeline"], f"{key}.pipeline")
+        return 0
 
     def __init__(self, attrs: Sequence[CodedAttribute], n_masks: int, *, chunk: int = 32768,
                  escape_limit: int = DEFAULT_ESCAPE_LIMIT, pipeline: bool = True):
@@ -139,6 +165,9 @@ class EntropyModel(nn.Module):
 
     def hash_bits(self) -> torch.Tensor:
         return torch.zeros(())
+
+    def set_bounds(self, xyz_min, xyz_max) -> None:
+        """The anchors' box; a model without a positional context ignores it."""
 
     def config(self) -> dict:
         return {"kind": self.kind, "n_masks": self.n_masks,
@@ -206,7 +235,7 @@ class EntropyModel(nn.Module):
         straight-through gradient ("ste", :func:`baseline.hac.quant.ste_round_q`); the bits are
         estimated on the noisy values either way.
         ``bit_weights`` {name: [N, d] float}: weigh those attributes' bits by these instead of
-        the Gaussian mask (a mask-training strategy's choice, e.g. HAC++'s anchor masks).
+        the Gaussian mask (a mask-training strategy's choice, e.g. anchor masks).
         """
         if decoder_quant not in ("noise", "ste"):
             raise ValueError(f"decoder_quant must be 'noise' or 'ste', got {decoder_quant!r}")
@@ -418,7 +447,28 @@ class EntropyModel(nn.Module):
 
 class HashGridContext:
     """Mixin for entropy models whose context is a binary hash grid (``self.grid``) over the
-    anchors' positions: its bounds, its hash bits (the grid's own rate) and its options."""
+    anchors' positions: its bounds, its hash bits (the grid's own rate), its options, and its
+    construction from a config (the grid layout of ``entropy.grid``, the context MLP's width)."""
+
+    HEADER_KEYS = EntropyModel.HEADER_KEYS | {"hidden", "grid", "grid_options"}
+
+    @classmethod
+    def build(cls, cfg, attrs, n_masks: int, n_anchors: int):
+        return cls(attrs, n_masks, grid_options=grid_options(cfg.entropy.grid, n_anchors),
+                   hidden=cfg.entropy.context_hidden)
+
+    @classmethod
+    def check_header(cls, entry: dict, key: str) -> int:
+        entries = super().check_header(entry, key)
+        if "hidden" in entry:
+            int_field(entry["hidden"], f"{key}.hidden", 1, MAX_HIDDEN)
+        for gk in ("grid", "grid_options"):
+            if gk in entry:
+                entries += check_grid_options(entry[gk], f"{key}.{gk}")
+        if not entries:
+            raise header_error(f"{key}.grid", f"the '{entry.get('kind')}' entropy model needs "
+                                              f"its grid layout")
+        return entries
 
     def set_bounds(self, xyz_min, xyz_max) -> None:
         self.grid.set_bounds(xyz_min, xyz_max)
@@ -587,18 +637,14 @@ class FactorizedEntropyModel(EntropyModel):
             raise BitstreamError(f"entropy model weights do not fit the model: {e}") from None
 
 
-ENTROPY_MODELS = {"hac": HACEntropyModel, "factorized": FactorizedEntropyModel}  # + registry
-
-
 def build_entropy_model(config: dict, **overrides) -> EntropyModel:
-    """Rebuild an entropy model from :meth:`EntropyModel.config` (e.g. a bitstream header)."""
-    from baseline import registry
-
+    """Rebuild an entropy model from :meth:`EntropyModel.config` (e.g. a bitstream header); its
+    class is the one registered under the config's ``kind``."""
     cfg = dict(config)
     kind = cfg.pop("kind")
     attrs = [CodedAttribute(str(n), int(d), float(q), bool(m)) for n, d, q, m in cfg.pop("attrs")]
     n_masks = int(cfg.pop("n_masks"))
-    cls = ENTROPY_MODELS.get(kind) or registry.get("entropy_model", kind)
+    cls = registry.component_class("entropy_model", kind)
     if "grid" in cfg:
         cfg["grid_options"] = cfg.pop("grid")
     cfg.update(overrides)

@@ -1,7 +1,7 @@
 """Bit-reproducible arithmetic for the entropy coder's probability model.
 
 Encoder and decoder must compute *bit-identical* distribution parameters, also when they run
-with different thread counts, SIMD paths or BLAS libraries (SPEC.md 5). Rounding float results
+with different thread counts, SIMD paths or BLAS libraries (docs/method.md section 5). Rounding float results
 to a coarse grid only makes a mismatch unlikely; here every step is exact or a single correctly
 rounded IEEE operation, so a mismatch is impossible by construction:
 

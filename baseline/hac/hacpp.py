@@ -1,5 +1,5 @@
 """HAC++'s entropy model (``hacpp``): a hyperprior, a channel context and a two-component
-mixture for the main coded attribute (SPEC.md section 6; YihangChen-ee/HAC-plus).
+mixture for the main coded attribute (docs/method.md section 6; YihangChen-ee/HAC-plus).
 
 * **Hyperprior**: HAC's binary hash grid at the anchor position, then ``Linear(96, 100) ReLU
   Linear(100, n_out)`` giving, in order: for the *main* attribute mean, scale and a mixture
@@ -37,6 +37,8 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from baseline.codec.container import BitstreamError
+from baseline.codec.fields import header_error, int_field, str_field
+from baseline.codec.format import MAX_HIDDEN
 from baseline.codec.mixture import MixtureStreamDecoder, MixtureStreamEncoder
 from baseline.codec.weights import pack_state_dict, round_module_, unpack_state_dict
 from baseline.contracts import CodedAttribute
@@ -79,6 +81,19 @@ def _bin_mass(x, mean, scale, q):
 class HACPPEntropyModel(HashGridContext, EntropyModel):
     kind = "hacpp"
     SECTION_LABELS = {"grid": "grid", "mlp": "hyperprior", "ctx": "channel_context"}
+    HEADER_KEYS = HashGridContext.HEADER_KEYS | {"main", "n_chunks", "chunk_hidden"}
+
+    @classmethod
+    def check_header(cls, entry: dict, key: str) -> int:
+        entries = super().check_header(entry, key)
+        if "main" in entry and str_field(entry["main"], f"{key}.main") not in [
+                a[0] for a in entry["attrs"]]:
+            raise header_error(f"{key}.main", f"{entry['main']!r:.60} is not a coded attribute")
+        if "n_chunks" in entry:
+            int_field(entry["n_chunks"], f"{key}.n_chunks", 1, 64)
+        if "chunk_hidden" in entry:
+            int_field(entry["chunk_hidden"], f"{key}.chunk_hidden", 1, MAX_HIDDEN)
+        return entries
 
     def __init__(self, attrs: Sequence[CodedAttribute], n_masks: int, *,
                  grid: Optional[BinaryHashGrid] = None, grid_options: Optional[dict] = None,

@@ -1,4 +1,4 @@
-"""HAC's quantization of the coded attributes (SPEC.md 3).
+"""HAC's quantization of the coded attributes (docs/method.md section 3).
 
 * base steps come from :class:`baseline.contracts.CodedAttribute` ``q0`` (feat 1, scaling 0.001,
   offsets 0.2);

@@ -1,4 +1,4 @@
-"""Visible-anchor prefilter (SPEC section 2).
+"""Visible-anchor prefilter (docs/method.md section 2).
 
 Each anchor is projected as a Gaussian with identity rotation and the given scales (the
 first three of exp(scaling)). An anchor is visible when

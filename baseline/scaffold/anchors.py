@@ -1,4 +1,4 @@
-"""Anchor initialisation: voxelized SfM points (SPEC.md section 2)."""
+"""Anchor initialisation: voxelized SfM points (docs/method.md section 2)."""
 from __future__ import annotations
 
 import math
@@ -29,7 +29,7 @@ def knn_mean_sq_dist(points: torch.Tensor, k: int = 3, chunk: int = 4096) -> tor
 
 
 def auto_voxel_size(points: torch.Tensor) -> float:
-    """SPEC.md: v <= 0 means the median over points of the mean squared distance to the 3-NN."""
+    """docs/method.md section 2: v <= 0 means the median over points of the mean squared distance to the 3-NN."""
     return float(torch.median(knn_mean_sq_dist(points)).item())
 
 

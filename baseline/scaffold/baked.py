@@ -33,30 +33,12 @@ from dataclasses import dataclass
 from typing import Callable, Optional
 
 import torch
-import torch.nn as nn
 
-from baseline.scaffold.model import kept_gaussians
+from baseline.contracts import BakeHead, Refiner  # noqa: F401  (BakeHead: the heads it bakes)
+from baseline.scaffold.gaussians import kept_gaussians
 
 # Pre-activation attributes a head can add to, with their channels per neural Gaussian.
 ATTR_CHANNELS = {"opacity": 1, "cov": 7, "color": 3}
-
-
-@dataclass
-class BakeHead:
-    """One two-layer head, as a model or a refiner declares it for baking.
-
-    Attributes:
-        x: [N, D] its view-independent input for every anchor (feature, residual, ...).
-        mlp: ``Sequential(Linear(D + 3 (+1), H), ReLU, Linear(H, K * C))``.
-        uses_distance: whether the first layer reads the distance after the view direction.
-        targets: attribute -> (first, stop) channels of the head's C channels per Gaussian that
-            add into that attribute (e.g. MGRD's appearance head: opacity (0, 1), color (1, 4)).
-    """
-
-    x: torch.Tensor
-    mlp: nn.Sequential
-    uses_distance: bool
-    targets: dict
 
 
 @dataclass
@@ -118,9 +100,11 @@ class BakedDecoder:
         heads = model.decoder.bake_heads(feat)
         ref = model.refiner
         if ref is not None and ref.active:
-            if not hasattr(ref, "bake_heads"):
+            # a refiner outside the Refiner contract declares no heads either
+            ref_heads = ref.bake_heads(values) if isinstance(ref, Refiner) else None
+            if ref_heads is None:               # a refiner that declares no heads
                 return None
-            heads = heads + list(ref.bake_heads(values))
+            heads = heads + list(ref_heads)
         order = _order_heads(heads)
         heads = [heads[i] for i in order]
         widths = [h.mlp[0].out_features for h in heads]

@@ -29,31 +29,16 @@ def build_model(cfg: Config, points: torch.Tensor) -> tuple[AnchorModel, float]:
     return model, v
 
 
-def grid_options(gcfg, n_anchors: int) -> dict:
-    """BinaryHashGrid constructor arguments from a GridConfig (``auto``: sized from the anchors)."""
-    from baseline.hac.hashgrid import auto_grid_layout
-
-    if gcfg.auto:
-        return dict(auto_grid_layout(n_anchors), n_features=gcfg.n_features)
-    return dict(resolutions_3d=tuple(gcfg.resolutions_3d), log2_table_3d=gcfg.log2_table_3d,
-                resolutions_2d=tuple(gcfg.resolutions_2d), log2_table_2d=gcfg.log2_table_2d,
-                n_features=gcfg.n_features)
-
-
 def build_entropy(cfg: Config, model: AnchorModel):
     """The configured entropy model, its head sized from the provider's coded attributes."""
-    cls = registry.get("entropy_model", cfg.entropy.model)
-    attrs = model.coded_attributes()
-    if cfg.entropy.model in ("hac", "hacpp"):
-        return cls(attrs, model.n_offsets, grid_options=grid_options(cfg.entropy.grid, model.n_anchors),
-                   hidden=cfg.entropy.context_hidden)
-    return cls(attrs, model.n_offsets)
+    cls = registry.component_class("entropy_model", cfg.entropy.model)
+    return cls.build(cfg, model.coded_attributes(), model.n_offsets, model.n_anchors)
 
 
 def entropy_param_groups(cfg: Config, entropy) -> list[dict]:
-    """Adam groups of an entropy model: hash-grid tables at the grid rate, HAC++'s channel
-    context networks at theirs, the rest (context MLP / hyperprior, factorized densities) at the
-    context rate."""
+    """Adam groups of an entropy model: hash-grid tables (``grid.*``) at the grid rate, channel
+    context networks (``ctx.*``) at theirs, the rest (context MLP / hyperprior, factorized
+    densities) at the context rate."""
     grid, channel, rest = [], [], []
     for name, p in entropy.named_parameters():
         (grid if name.startswith("grid.") else channel if name.startswith("ctx.")
@@ -62,7 +47,7 @@ def entropy_param_groups(cfg: Config, entropy) -> list[dict]:
     groups = [dict(name="entropy_grid", params=grid, lr_init=lr.grid_init, lr_final=lr.grid_final),
               dict(name="entropy_context", params=rest, lr_init=lr.context_init,
                    lr_final=lr.context_final)]
-    if channel:                       # HAC++'s channel context networks (their own schedule)
+    if channel:                       # channel context networks (their own schedule)
         groups.append(dict(name="entropy_channel", params=channel, lr_init=lr.channel_init,
                            lr_final=lr.channel_final))
     return groups

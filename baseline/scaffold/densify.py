@@ -16,6 +16,7 @@ from __future__ import annotations
 import torch
 
 from baseline import registry
+from baseline.contracts import TrainingHook
 from baseline.device import uniform
 
 
@@ -107,7 +108,13 @@ def grow_anchors(model, grads: torch.Tensor, eligible: torch.Tensor, cfg, voxel_
     return added
 
 
-class ScaffoldDensify:
+class TrainingCollapsed(ValueError):
+    """Every anchor was about to be pruned: no Gaussian kept an opacity above zero in the views
+    that saw it, so nothing would receive a gradient again. Training stops; the last
+    checkpoint is kept."""
+
+
+class ScaffoldDensify(TrainingHook):
     """Growing statistics after backward, grow + prune every ``update_interval`` iterations."""
 
     name = "scaffold_densify"
@@ -226,7 +233,6 @@ class ScaffoldDensify:
         if n_pruned and n_pruned == model.n_anchors:
             # an empty model is an absorbing state (no Gaussian, no gradient): say so here,
             # not with a shape error in the next render
-            from baseline.train.trainer import TrainingCollapsed
             raise TrainingCollapsed(
                 f"training collapsed at iteration {it}: every anchor "
                 f"({n_pruned}) would be pruned, as no Gaussian of any anchor kept an opacity "

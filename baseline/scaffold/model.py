@@ -9,14 +9,14 @@ that initialises the rows of grown anchors.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 from typing import Callable, Optional
 
 import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from baseline.contracts import CodedAttribute
+from baseline.contracts import BakeHead, CodedAttribute
+from baseline.scaffold.gaussians import Gaussians, kept_gaussians
 from baseline.timing import backward_mark, stage
 
 # grow rule: (values of this tensor [N, ...], parent index of each new-anchor candidate [C],
@@ -64,51 +64,10 @@ class DecoderMLPs(nn.Module):
 
     def bake_heads(self, feat: torch.Tensor) -> list:
         """The three heads for :class:`~baseline.scaffold.baked.BakedDecoder`; feat [N,F]."""
-        from baseline.scaffold.baked import BakeHead
-
         d = self.use_distance
         return [BakeHead(feat, self.mlp_opacity, d, {"opacity": (0, 1)}),
                 BakeHead(feat, self.mlp_cov, d, {"cov": (0, 7)}),
                 BakeHead(feat, self.mlp_color, d, {"color": (0, 3)})]
-
-
-@dataclass
-class Gaussians:
-    """Neural Gaussians of the visible anchors of one view (after the opacity > 0 selection).
-
-    Attributes:
-        means [G,3], quats [G,4] (normalized), scales [G,3], opacities [G], colors [G,3].
-        anchor_index [G]: index (into all anchors) of the anchor each Gaussian belongs to.
-        selection [M*K] bool: which of the visible anchors' K Gaussians were kept.
-        opacity_all [M,K]: masked tanh opacity of every candidate Gaussian (growing statistics);
-            None from a baked decoded model (:mod:`baseline.scaffold.baked`), which only renders.
-        visible [N] bool: the anchors that passed the prefilter.
-    """
-
-    means: torch.Tensor
-    quats: torch.Tensor
-    scales: torch.Tensor
-    opacities: torch.Tensor
-    colors: torch.Tensor
-    anchor_index: torch.Tensor
-    selection: torch.Tensor
-    opacity_all: Optional[torch.Tensor]
-    visible: torch.Tensor
-
-
-def kept_gaussians(*, means, cov, raw_color, opacities, scales_base, anchor_index, selection,
-                   opacity_all, idx, n_anchors, visible=None) -> Gaussians:
-    """The activation tail shared by :meth:`AnchorModel.decode` and baked decoding: kept
-    Gaussians' pre-activation cov [G,7] and color [G,3] -> scales (``scales_base`` [G,3] x
-    sigmoid), normalized quaternions, sigmoid colours; ``visible`` [N] built from ``idx`` when
-    not given."""
-    if visible is None:
-        visible = torch.zeros(n_anchors, dtype=torch.bool, device=idx.device)
-        visible[idx] = True
-    return Gaussians(means=means, quats=F.normalize(cov[:, 3:7], dim=-1),
-                     scales=scales_base * torch.sigmoid(cov[:, :3]), opacities=opacities,
-                     colors=torch.sigmoid(raw_color), anchor_index=anchor_index,
-                     selection=selection, opacity_all=opacity_all, visible=visible)
 
 
 # the provider's own random stream: the run's seed + this (see AnchorModel.__init__)

@@ -1,30 +1,19 @@
-"""Feature providers (DESIGN.md contracts). The baseline's is ``explicit``: a per-anchor table.
-
-A provider is an ``nn.Module`` built as ``factory(model)`` that may add per-anchor tensors to the
-model and must offer:
-    feature_dim: int                       width of the decoder MLPs' feature input
-    coded_attributes() -> [CodedAttribute] everything the entropy model codes (incl. scaling,
-                                           offsets, which the model itself supplies)
-    coded_values(idx) -> {name: [M,d]}     the provider's own coded values for anchors idx
-    decoder_features(idx, values, xyz) -> [M, feature_dim]
-    param_groups(cfg) -> [dict(name, params, lr_init, lr_final)]
-"""
+"""The baseline's feature provider ``explicit``: a per-anchor table
+(contract: :class:`baseline.contracts.FeatureProvider`)."""
 from __future__ import annotations
 
 import torch
-import torch.nn as nn
 
 from baseline import registry
-from baseline.contracts import scaffold_coded_attributes
+from baseline.contracts import FeatureProvider, scaffold_coded_attributes
+from baseline.scaffold.model import grow_max_of_parents
 
 
-class ExplicitFeatures(nn.Module):
+class ExplicitFeatures(FeatureProvider):
     """Scaffold-GS / HAC: a learned 50-dim feature per anchor (init 0, grown = max of parents)."""
 
     def __init__(self, model, cfg):
         super().__init__()
-        from baseline.scaffold.model import grow_max_of_parents
-
         self.feature_dim = cfg.model.feat_dim
         self.n_offsets = cfg.model.n_offsets
         self._model = [model]  # not a submodule: avoid a reference cycle in the module tree

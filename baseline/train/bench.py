@@ -33,9 +33,10 @@ NESTED = {"provider", "decoder MLPs", "refiner", "losses bwd", "rasterize bwd",
 
 def _synthetic_trainer(n_anchors: int, threads: int, patches=("cpu",), folder=None):
     """A state of ``n_anchors`` SfM points of the procedural scene (245 x 136, truck's ``-r 4``
-    size) in HAC's adaptive phase from the first step; with a method's patches (e.g.
-    ``predict-gs``) its every stage is on from the first step too (``predict.residual_from``
-    0, no progressive schedule). One scene per ``folder``: several methods share it."""
+    size) in HAC's adaptive phase from the first step; with a method's patches its every stage
+    is on from the first step too (its hooks' ``all_on_sets``). One scene per ``folder``:
+    several methods share it."""
+    from baseline import registry
     from baseline.config import build_config
     from baseline.data.scene import load_scene
     from baseline.data.synthetic import make_scene
@@ -47,9 +48,9 @@ def _synthetic_trainer(n_anchors: int, threads: int, patches=("cpu",), folder=No
     sets = [f"train.threads={threads}", "model.voxel_size=0.001", "entropy.noise_from=0",
             "entropy.context_from=0", "train.log_every=1000"]
     cfg = build_config(list(patches), sets)
-    if "predict" in cfg.ext:
-        cfg = build_config(list(patches), sets + ["predict.residual_from=0",
-                                                  "predict.schedule=none", "predict.d_s=1.0"])
+    on = [s for h in cfg.train.hooks for s in registry.component_class("hooks", h).all_on_sets(cfg)]
+    if on:
+        cfg = build_config(list(patches), sets + on)
     run = d / ("run-" + "+".join(patches))
     return Trainer(cfg, load_scene(d / "scene", progress=False), run, progress=False)
 
@@ -61,10 +62,8 @@ def _adaptive(trainer) -> None:
     from baseline.codec.rangecoder import anchor_bounds
     import torch
 
-    ent = trainer.entropy
-    if hasattr(ent, "set_bounds"):
-        lo, hi = anchor_bounds(trainer.model.xyz.detach().cpu().numpy())
-        ent.set_bounds(torch.from_numpy(lo), torch.from_numpy(hi))
+    lo, hi = anchor_bounds(trainer.model.xyz.detach().cpu().numpy())
+    trainer.entropy.set_bounds(torch.from_numpy(lo), torch.from_numpy(hi))
     trainer.phase = "adaptive"
     for h in trainer.hooks:
         if type(h).__name__ == "HACPhases":
@@ -102,7 +101,7 @@ def run_train_bench(runs: list[str], steps: int = 10, threads: int = 1, warmup: 
                     anchors: Optional[int] = None, methods: Sequence[str] = (),
                     clock: str = "wall") -> dict:
     """Bench each run folder, or without runs a synthetic state of ``anchors`` points for HAC
-    and for each of ``methods`` (patches joined by '+', e.g. ``predict-gs``), in one process.
+    and for each of ``methods`` (patches joined by '+', as ``--vs`` takes them), in one process.
 
     ``clock``: "wall" (``time.perf_counter``) or "cpu" (the process's CPU time,
     ``time.process_time``: at one thread, what the step itself costs, whatever else shares the

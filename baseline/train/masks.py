@@ -1,5 +1,6 @@
 """How the Gaussian masks are trained: a strategy chosen by ``entropy.mask_training``, so that
-neither a method nor an entropy model branches on it (DESIGN.md, "Mask training").
+neither a method nor an entropy model branches on it (contract:
+:class:`baseline.contracts.MaskTraining`).
 
 * ``hac`` (HAC's reference code): the rate is estimated on a ~5% sample of the *visible, valid*
   anchors inside the render (:func:`baseline.pipeline.render_view`), the offsets' bits weighted
@@ -14,22 +15,18 @@ neither a method nor an entropy model branches on it (DESIGN.md, "Mask training"
   reconstruction can switch it back on). The mask learning rate decays to
   ``min(lr.mask_final_per_mlambda x lambda / 1e-3, lr.mask_final_cap)`` (x the scene extent;
   cap 0: none): HAC++'s per-dataset values are in the dataset patches.
-
-A strategy is built as ``cls(trainer)`` and provides ``render_rate_sample`` (the visible share
-sampled in the render), ``mask_after_selection``, ``mask_lr_final(cfg, extent)`` (None: the
-config's) and ``loss(result) -> (terms to add to the loss in order, log terms)`` for the
-adaptive phase.
 """
 from __future__ import annotations
 
 import torch
 
 from baseline import registry
+from baseline.contracts import MaskTraining
 from baseline.device import uniform
 from baseline.train.losses import rate_term
 
 
-class HACMaskTraining:
+class HACMaskTraining(MaskTraining):
     name = "hac"
     mask_after_selection = False
 
@@ -46,9 +43,8 @@ class HACMaskTraining:
     def _hash_bits(self):
         t = self.t
         hb = t.entropy.hash_bits()
-        if hasattr(t.model.provider, "rate_bits"):   # e.g. Predict-GS's SFP grid
-            hb = hb + t.model.provider.rate_bits()
-        return hb
+        own = t.model.provider.rate_bits()          # a provider's own hash grid, if any
+        return hb if own is None else hb + own
 
     def loss(self, res):
         t, cfg = self.t, self.t.cfg

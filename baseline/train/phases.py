@@ -1,4 +1,4 @@
-"""HAC's quantization phases as a training hook (SPEC.md section 3).
+"""HAC's quantization phases as a training hook (docs/method.md section 3).
 
 it <= noise_from: no quantization; noise_from < it <= context_from: U(-0.5,0.5) * Q0 noise;
 at context_from the anchor bounds are recomputed; after it the context model is on (adaptive
@@ -16,6 +16,7 @@ import torch
 
 from baseline import registry
 from baseline.codec.rangecoder import anchor_bounds
+from baseline.contracts import TrainingHook
 
 
 def phase_at(it: int, noise_from: int, context_from: int) -> str:
@@ -26,7 +27,7 @@ def phase_at(it: int, noise_from: int, context_from: int) -> str:
     return "adaptive"
 
 
-class HACPhases:
+class HACPhases(TrainingHook):
     name = "hac_phases"
 
     def __init__(self, trainer):
@@ -40,10 +41,9 @@ class HACPhases:
         # HAC's moment (step 10000, before its growing), or the first step when the context is
         # on from the start (context_from 0)
         if it == max(self.context_from, 1):
-            ent = self.t.entropy
-            if hasattr(ent, "set_bounds"):     # context models normalise by the anchor box
-                lo, hi = anchor_bounds(self.t.model.xyz.detach().cpu().numpy())
-                ent.set_bounds(torch.from_numpy(lo), torch.from_numpy(hi))
+            # context models normalise by the anchor box (others ignore it)
+            lo, hi = anchor_bounds(self.t.model.xyz.detach().cpu().numpy())
+            self.t.entropy.set_bounds(torch.from_numpy(lo), torch.from_numpy(hi))
         self.t.phase = ph
 
 

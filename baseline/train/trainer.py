@@ -1,12 +1,11 @@
 """The trainer: Adam with per-group exponential schedules, named hooks, exact resume.
 
-Hooks (DESIGN.md, "Training hooks") are objects built as ``cls(trainer)`` from registry kind
-``hooks`` and may define ``before_step(it)``, ``after_backward(it, ctx)``, ``after_step(it)``,
-``state_dict()`` / ``load_state_dict(s)`` (saved in checkpoints) and ``restore(it)``: called
-after a checkpoint of iteration ``it`` is loaded, to re-derive module state the hook sets in
-``before_step`` (a loaded run is rendered or encoded without taking a step).
-Hooks steer the trainer through ``trainer.phase`` (quantization phase), ``trainer.render_scale``
-(progressive resolution) and ``trainer.extra_losses`` (name -> callable(ctx) -> scalar).
+Hooks are :class:`baseline.contracts.TrainingHook` objects built as ``cls(trainer)`` from
+registry kind ``hooks``: ``before_step(it)``, ``after_backward(it, ctx)``, ``after_step(it)``,
+``state_dict()`` / ``load_state_dict(s)`` (saved in checkpoints) and ``restore(it)`` (after a
+checkpoint of iteration ``it`` is loaded). They steer the trainer through ``trainer.phase``
+(quantization phase), ``trainer.render_scale`` (progressive resolution) and
+``trainer.extra_losses`` (name -> callable(ctx) -> scalar).
 """
 from __future__ import annotations
 
@@ -35,7 +34,9 @@ from baseline.fileio import (
 )
 from baseline.memory import allocating
 from baseline.pipeline import render_view
+from baseline.contracts import TrainingHook
 from baseline.scaffold.build import build_entropy, build_model, entropy_param_groups
+from baseline.scaffold.densify import TrainingCollapsed  # noqa: F401  (raised by growing)
 from baseline.timing import active as active_timer
 from baseline.timing import stage
 from baseline.train.losses import lr_exp, reconstruction_loss
@@ -85,12 +86,6 @@ class TensorBoardLog:
 class NonFiniteError(ValueError):
     """Training reached (or a checkpoint holds) NaN or Inf: nothing is written over the last
     good checkpoint."""
-
-
-class TrainingCollapsed(ValueError):
-    """Every anchor was about to be pruned: no Gaussian kept an opacity above zero in the views
-    that saw it, so nothing would receive a gradient again. Training stops; the last
-    checkpoint is kept."""
 
 
 class TrainingStopped(KeyboardInterrupt):
@@ -213,7 +208,8 @@ class Trainer:
         self.stall_from = 0
         self._view_order: list[int] = []
         self.optimizer = self._make_optimizer()
-        self.hooks = [registry.get("hooks", name)(self) for name in cfg.train.hooks]
+        self.hooks: list[TrainingHook] = [registry.get("hooks", name)(self)
+                                          for name in cfg.train.hooks]
 
     # ---------------------------------------------------------------------------- optimizer
     def _make_optimizer(self) -> torch.optim.Adam:
@@ -295,8 +291,7 @@ class Trainer:
         self.model.iteration = it          # the birth of anchors grown in this step
         with stage("hooks before"):
             for h in self.hooks:
-                if hasattr(h, "before_step"):
-                    h.before_step(it)
+                h.before_step(it)
             self.update_lr(it)
         with stage("view + ground truth"):
             cam = self.next_view()
@@ -336,15 +331,13 @@ class Trainer:
             timer.backward_finished()
         with stage("densify statistics"):
             for h in self.hooks:
-                if hasattr(h, "after_backward"):
-                    h.after_backward(it, ctx)
+                h.after_backward(it, ctx)
         with stage("optimizer"):
             self.optimizer.step()
             self.optimizer.zero_grad(set_to_none=True)
         with stage("hooks after (growing, pruning)"):
             for h in self.hooks:
-                if hasattr(h, "after_step"):
-                    h.after_step(it)
+                h.after_step(it)
         with torch.no_grad():
             mse = ((out.image.detach().clamp(0, 1) - gt) ** 2).mean()
             terms["psnr"] = float(-10 * torch.log10(mse.clamp_min(1e-10)))
@@ -462,7 +455,8 @@ class Trainer:
             "model": self.model.state_dict(),
             "entropy": self.entropy.state_dict(),
             "optimizer": self.optimizer.state_dict(),
-            "hooks": {type(h).__name__: h.state_dict() for h in self.hooks if hasattr(h, "state_dict")},
+            "hooks": {type(h).__name__: st for h in self.hooks
+                      if (st := h.state_dict()) is not None},
             "phase": self.phase,
             "render_scale": self.render_scale,
             "voxel_size": self.voxel_size,
@@ -525,7 +519,7 @@ class Trainer:
             g["fused"], g["foreach"] = self._fused, None
         for h in self.hooks:
             st = s["hooks"].get(type(h).__name__)
-            if st is not None and hasattr(h, "load_state_dict"):
+            if st is not None:
                 h.load_state_dict(st)
         self.iteration = s["iteration"]
         self._last_saved = self.iteration
@@ -549,8 +543,7 @@ class Trainer:
         self.model.voxel_size = float(self.voxel_size)
         self._view_order = list(s["view_order"])
         for h in self.hooks:
-            if hasattr(h, "restore"):
-                h.restore(self.iteration)
+            h.restore(self.iteration)
         torch.set_rng_state(s["rng"]["torch"])
         self.generator.set_state(s["rng"]["gen"])
         if self.step_generator is not self.generator and "step_gen" in s["rng"] \

@@ -1,0 +1,168 @@
+"""A run's training curve in a few numbers: where in its schedule a method falls behind.
+
+The training log (``train_log.jsonl``, one line every ``train.log_every`` iterations) is cut into
+``windows`` equal spans of the schedule; each span keeps the mean training L1 of the sampled
+views, the mean sampled bits per coded value of the rate term (once it is on), the mean
+Gaussians drawn per training view and the anchors at the span's end. A comparison stores this
+summary in each run's record (``compare.json``), so archived records keep it without the log.
+
+What the numbers are: L1 and bits are those of the sampled training view of each logged step,
+so a span's mean moves between seeds (truck, HAC, seeds 0 and 1: by 1-4% per span); a method that
+trains on downsampled views (a progressive schedule: its method spec's training_curve note says where)
+has its L1 there on smaller, smoother images.
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Optional
+
+from baseline.eval.report.cells import Table, _change, _pct
+from baseline.eval.report.names import rate_elements
+
+WINDOWS = 6
+
+
+def _mean(xs: list) -> Optional[float]:
+    return sum(xs) / len(xs) if xs else None
+
+
+def read_log(path: str | Path) -> list[dict]:
+    """The lines of a training log; a torn or foreign line ends it (as the trainer does)."""
+    from baseline.fileio import read_text_bounded
+
+    out = []
+    for line in read_text_bounded(path, "a training log").splitlines():
+        try:
+            d = json.loads(line)
+            int(d["it"])
+        except (ValueError, KeyError, TypeError):
+            break
+        out.append(d)
+    return out
+
+
+def summarize(entries: list[dict], iterations: Optional[int] = None,
+              windows: int = WINDOWS) -> Optional[dict]:
+    """The windowed summary of log ``entries`` over ``[0, iterations]`` (default: the last
+    logged iteration). None when the log is empty. Lists hold one value per window, None for a
+    window with nothing logged (or, for ``bits_per_value``, before the rate term is on)."""
+    if windows < 1:
+        raise ValueError(f"windows must be >= 1, got {windows}")
+    if not entries:
+        return None
+    total = int(iterations) if iterations else max(int(e["it"]) for e in entries)
+    bounds = [round(total * k / windows) for k in range(windows + 1)]
+    out = {"iterations": total, "bounds": bounds, "l1": [], "bits_per_value": [],
+           "gaussians": [], "anchors": []}
+    for lo, hi in zip(bounds[:-1], bounds[1:]):
+        span = [e for e in entries if lo < int(e["it"]) <= hi]
+        out["l1"].append(_mean([float(e["l1"]) for e in span if e.get("l1") is not None]))
+        out["bits_per_value"].append(_mean([float(e["bpp"]) for e in span if e.get("bpp") is not None]))
+        out["gaussians"].append(_mean([float(e["gaussians"]) for e in span
+                                       if e.get("gaussians") is not None]))
+        out["anchors"].append(int(span[-1]["anchors"]) if span and "anchors" in span[-1] else None)
+    return out
+
+
+def train_curve(run_dir: str | Path, iterations: Optional[int] = None,
+                windows: int = WINDOWS) -> Optional[dict]:
+    """:func:`summarize` of the run's ``train_log.jsonl`` over ``iterations`` (default: the
+    run's configured schedule, so a run still training shows its later spans empty); None
+    without a log."""
+    from baseline.train.trainer import TRAIN_LOG_NAME
+
+    path = Path(run_dir) / TRAIN_LOG_NAME
+    if not path.is_file():
+        return None
+    return summarize(read_log(path), iterations or _schedule(run_dir), windows)
+
+
+def _schedule(run_dir: str | Path) -> Optional[int]:
+    """``train.iterations`` of a run's config.toml; None when it cannot be read."""
+    import tomllib
+
+    from baseline.fileio import read_text_bounded
+
+    try:
+        return int(tomllib.loads(read_text_bounded(Path(run_dir) / "config.toml", "a run's config"))
+                   ["train"]["iterations"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+
+
+def _cell(v: Optional[float], ref: Optional[float], nd: int) -> str:
+
+    if v is None:
+        return "-"
+    ch = _change(v, ref)
+    return f"{v:.{nd}f}" if ch is None else f"{v:.{nd}f} ({_pct(ch)})"
+
+
+def span_headers(curves: list[dict]) -> list[str]:
+    """Column heads of the L1 spans: iteration ranges when every curve has the same bounds."""
+    n = len(curves[0]["l1"])
+    b = curves[0]["bounds"]
+    if all(c["bounds"] == b for c in curves):
+        return [f"L1 it {b[k] + 1}-{b[k + 1]}" for k in range(n)]
+    return [f"L1 {k + 1}/{n} of the schedule" for k in range(n)]
+
+
+def curve_cells(curve: dict, values_per_anchor: Optional[int], ref: Optional[dict] = None,
+                ref_values_per_anchor: Optional[int] = None) -> list[str]:
+    """One table row's cells: the L1 of each span and the last span's sampled bits per anchor
+    (bits per coded value x ``values_per_anchor``), each with its change vs ``ref`` when given
+    (a reference curve with the same number of spans)."""
+    paired = ref is not None and len(ref["l1"]) == len(curve["l1"])
+    cells = [_cell(v, ref["l1"][k] if paired else None, 4) for k, v in enumerate(curve["l1"])]
+
+    def bits(c, e):
+        v = c["bits_per_value"][-1]
+        return None if v is None or not e else v * e
+
+    mine = bits(curve, values_per_anchor)
+    theirs = bits(ref, ref_values_per_anchor) if paired else None
+    return cells + [_cell(mine, theirs, 1)]
+
+
+def values_per_anchor(run_dir: str | Path) -> Optional[int]:
+    """The coded values per anchor a run's rate term divides by: ``entropy.rate_values_per_anchor``
+    when set, else the sum of its coded attributes' dims (from its comparison record); None when
+    neither is recorded."""
+    import tomllib
+
+    from baseline.fileio import read_text_bounded
+
+    run_dir = Path(run_dir)
+    row = {}
+    try:
+        row["rate_values_per_anchor"] = (tomllib.loads(read_text_bounded(run_dir / "config.toml",
+                                                                         "a run's config"))
+                                         .get("entropy", {}).get("rate_values_per_anchor", 0))
+    except (OSError, ValueError, TypeError):
+        pass
+    try:
+        row["attributes"] = json.loads(read_text_bounded(run_dir / "compare.json", "a run's record")
+                                       )["encode"]["attributes"]
+    except (OSError, ValueError, KeyError, TypeError):
+        pass
+    return rate_elements(row) or None
+
+
+def format_curves(runs: list[str | Path], windows: int = WINDOWS) -> str:
+    """``pgs curves``: the curves of run folders as a table, the first run as the reference."""
+
+    items = []
+    for r in runs:
+        c = train_curve(r, None, windows)
+        if c is None:
+            raise ValueError(f"{r}: no training log (train_log.jsonl) in this folder")
+        items.append((Path(r).name, c, values_per_anchor(r)))
+    ref = items[0]
+    rows = [[name] + curve_cells(c, e, None if i == 0 else ref[1], ref[2])
+            for i, (name, c, e) in enumerate(items)]
+    notes = [f"The mean L1 of the sampled training views over each of {windows} equal spans of "
+             "each run's schedule, and the rate term's sampled bits per anchor over the last span "
+             f"('-' where not recorded); in brackets the change vs {ref[0]}."]
+    return Table("Training curves", ["run"] + span_headers([c for _, c, _ in items])
+                 + ["bits/anchor, last span"], rows, notes).text()
