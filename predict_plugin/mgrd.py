@@ -4,7 +4,7 @@ Two heads, each a two-layer MLP with ReLU, input f_r + view direction (3) + dist
 shape head -> K x 7 (delta scale 3, delta rotation 4), appearance head -> K x 4 (delta
 opacity 1, delta colour 3).
 
-Where the corrections enter (the paper leaves it open; SPEC.md says choose): in the
+Where the corrections enter (the paper leaves it open): in the
 pre-activation space of the decoder heads, i.e. refined opacity = tanh(raw_o + d_o), colour =
 sigmoid(raw_c + d_c), scale = s_anchor * sigmoid(raw_s + d_s), rotation = normalize(raw_r + d_r).
 This keeps every refined attribute in its valid range with no clamping, and makes a zero

@@ -1,5 +1,8 @@
 """Entropy models of the coded per-anchor attributes, behind one CompressAI-like interface.
 
+One module of about 650 lines: both registered models and the probability code that training
+(rate) and coding (compress / decompress) share, kept side by side so the two paths cannot part.
+
 Registered as ``entropy_model`` components (see :mod:`baseline.hac`):
 
 * ``hac``        — HAC's hash-grid context model (docs/method.md section 3): a :class:`BinaryHashGrid` queried at

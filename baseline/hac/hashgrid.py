@@ -1,4 +1,8 @@
-"""HAC's binarized hash grid: one 3D multi-resolution grid plus xy / xz / yz planes (SPEC.md 3).
+"""HAC's binarized hash grid: one 3D multi-resolution grid plus xy / xz / yz planes (docs/method.md section 3).
+
+One module of about 800 lines: the grid's layout arithmetic, its straight-through binarization,
+the hash-bits term and the dispatch to the numba kernels are one component's parts, each
+checked against the same layout.
 
 Also the generic binary feature field that Predict-GS reuses as its Spatial Feature Pool: every
 size is a constructor argument, and several instances can live side by side.

@@ -1,5 +1,8 @@
 """Numba kernels of the CPU rasterizer (forward and backward).
 
+One module of about 1,100 lines: the forward and backward kernels share the per-tile state
+layout, its index constants and the work order, and must change together.
+
 Everything here works on NumPy arrays; :mod:`baseline.render.cpu` wraps the kernels in
 ``torch.autograd.Function`` objects. The math follows gsplat's "classic" 3DGS rasterizer
 (see :mod:`baseline.render.conventions`), with two CPU-specific choices:

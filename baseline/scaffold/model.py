@@ -191,7 +191,7 @@ class AnchorModel(nn.Module):
     def coded_values(self, idx: torch.Tensor) -> dict[str, torch.Tensor]:
         """Values of every coded attribute for anchors ``idx`` [M]: name -> [M, dims].
 
-        scaling is coded AFTER exp (SPEC.md section 3); offsets flattened to [M, 3K].
+        scaling is coded AFTER exp (docs/method.md section 3); offsets flattened to [M, 3K].
         """
         if self.fixed_values is not None:       # a decoded model: the values are the decoded ones
             return {k: v[idx] for k, v in self.fixed_values.items()}

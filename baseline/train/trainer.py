@@ -1,5 +1,8 @@
 """The trainer: Adam with per-group exponential schedules, named hooks, exact resume.
 
+About 630 lines: the step, its timing, the learning-rate schedules and exact resume share the
+trainer's state, which is why they live in one class.
+
 Hooks are :class:`baseline.contracts.TrainingHook` objects built as ``cls(trainer)`` from
 registry kind ``hooks``: ``before_step(it)``, ``after_backward(it, ctx)``, ``after_step(it)``,
 ``state_dict()`` / ``load_state_dict(s)`` (saved in checkpoints) and ``restore(it)`` (after a
