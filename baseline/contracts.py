@@ -302,6 +302,7 @@ class MethodSpec:
         patches: the patches it ships (found by ``--patch``), its own first.
         notes: what the report's notes say of it, by topic (``feature_sections``: what its
             ``feature`` group holds; ``grown_anchors``: how its grown anchors split by stage).
+        demo: one of ``pgs demo``'s default contenders against the baseline.
     """
 
     name: str
@@ -309,6 +310,7 @@ class MethodSpec:
     description: str = ""
     patches: tuple[str, ...] = ()
     notes: tuple[tuple[str, str], ...] = ()
+    demo: bool = False
 
     def note(self, topic: str) -> str | None:
         return dict(self.notes).get(topic)

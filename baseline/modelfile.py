@@ -24,7 +24,7 @@ renders are the decoder's. The reported size is the file's byte count.
 
 Size groups (``pgs info``): ``feature`` = the provider's own coded attribute(s) and every section
 the provider owns (HAC: feat; a predicting provider: its grid, networks and residual), as
-Predict-GS's paper splits sizes in its Table 3; the rest is split into anchor, scaling, offsets, hash, masks, mlps, header.
+predictive methods' papers split their sizes; the rest is split into anchor, scaling, offsets, hash, masks, mlps, header.
 """
 from __future__ import annotations
 

@@ -39,7 +39,7 @@ _BUILTIN_MODULES = (
     "baseline.scaffold",
     "baseline.hac",
     "baseline.train",
-    "baseline.eval.executors",
+    "baseline.experiment.executors",
 )
 
 

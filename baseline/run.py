@@ -130,6 +130,110 @@ def encode_run(run_dir: str | Path, output: str | Path, *, overwrite: bool = Fal
     return st, trainer
 
 
+def decoded_scene(dec, scene_override=None):
+    """The scene of a decoded file when it is here (``scene_override`` or the path its header
+    names), else None."""
+    path = scene_override or dec.scene_path
+    if not path or not Path(path).exists():
+        return None
+    return load_scene_for(dec.cfg, path, progress=False)
+
+
+def decode_run(file: str | Path, out: str | Path, *, scene: Optional[str] = None,
+               render: str = "none", device: Optional[str] = None, sh_degree: int = 3,
+               overwrite: bool = False, echo=print) -> dict:
+    """Decode a ``.pgs`` file into the folder ``out`` (``pgs decode``): optionally evaluate the
+    decoded model on one split (``render``: ``test``, ``train`` or ``none``; renders under
+    ``out/<split>/``, FPS also without a feature provider's decoded-model cache), then export
+    its Gaussians to ``out/point_cloud.ply``: the union over the training views with SH colours
+    when the scene is here, else the Gaussians seen from the file's mean training camera with
+    degree-0 colours. ``out`` is new, this command's own earlier folder, or with ``overwrite``
+    any folder :func:`baseline.guard.check_output` allows; nothing is written unless the file
+    decodes, and a failure leaves no new folder behind. ``echo`` prints the progress lines.
+    Returns the record written to ``out/results.json``."""
+    import shutil
+
+    import torch
+
+    from baseline.contracts import feature_cache
+    from baseline.eval.export import export_run_ply, export_sh_ply, format_sh_export
+    from baseline.eval.metrics import format_psnr
+    from baseline.fileio import read_json_bounded
+    from baseline.guard import check_output, write_marker
+    from baseline.modelfile import decode_model
+
+    out = Path(out)
+
+    def own(folder):             # written before folders were marked: its record names the file
+        try:
+            rec = read_json_bounded(folder / "results.json", "a pgs record")
+        except ValueError:
+            return False
+        return isinstance(rec, dict) and "ply" in rec and isinstance(rec.get("file"), str) and \
+            Path(rec["file"]).resolve() == Path(file).resolve()
+
+    # never a run's folder, never inside a scene, never a folder of the user's files
+    check_output(out, command="decode", source=file, folder=True, overwrite=overwrite,
+                 own=own, shares=("eval",))
+    dec = decode_model(file)               # nothing is written unless the file decodes
+    echo(f"decoded {file}: {dec.model.n_anchors} anchors in {dec.decode_s:.2f} s")
+    res = {"file": str(file), "bytes": Path(file).stat().st_size, "decode_s": dec.decode_s,
+           "anchors": dec.model.n_anchors}
+    created = not out.exists()
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        write_marker(out, "decode", file)
+        center = dec.header.get("view_center")
+        r = None
+        if render != "none" or center is None:
+            r = Renderable(file, scene, device=device, decoded=dec)
+        if render != "none":
+            from baseline.eval.evaluate import method_key
+            from baseline.eval.metrics import default_lpips
+
+            res[render] = r.evaluate(render, render_dir=out / render / method_key(r.iterations),
+                                     lpips_fn=default_lpips()[0])
+            t = res[render]
+            echo(f"{render}: PSNR {format_psnr(t['psnr'], 3)}  SSIM {t['ssim']:.4f}  "
+                 f"FPS {t['fps']:.1f}")
+            prov = feature_cache(r.model)
+            if prov is not None:             # FPS without the provider's decoded-model cache
+                prov.clear_cache()
+                r.model.unbake()             # (a bake holds the cached features' first-layer terms)
+                nc = r.evaluate(render)
+                prov.build_cache(r.model.xyz)
+                r.model.bake_if_faster()
+                t["fps_no_cache"] = nc["fps"]
+                echo(f"FPS without the feature cache {nc['fps']:.1f} (with {t['fps']:.1f})")
+        model = r.model if r is not None else dec.model
+        model.to("cpu")
+        ply = out / "point_cloud.ply"
+        sc = r.scene if r is not None else decoded_scene(dec, scene)
+        if sc is not None and r is None:        # (Renderable checked its own)
+            from baseline.data.scene import scene_bounds
+            from baseline.scaffold.model import check_bounds
+
+            check_bounds(model, str(file), *scene_bounds(sc))
+        if sc is not None and sc.train_cameras:
+            model.unbake()
+            res["ply"] = export_sh_ply(model, sc, ply, sh_degree=sh_degree, source=str(file))
+            echo(format_sh_export(res["ply"]))
+        else:
+            n = export_run_ply(model, None, ply,
+                               center=None if center is None else torch.tensor(center))
+            res["ply"] = {"path": str(ply), "gaussians": n, "sh_degree": 0,
+                          "note": "scene not here: one viewpoint's Gaussians, degree-0 colours"}
+            echo(f"wrote {n} Gaussians to {ply}: the scene {dec.scene_path} is not here, so "
+                 f"these are the Gaussians seen from the mean training camera with degree-0 "
+                 f"colours (pass --scene PATH for the view-union export with SH colours)")
+        write_json_atomic(out / "results.json", res)
+    except BaseException:
+        if created:                          # a failed decode leaves nothing behind
+            shutil.rmtree(out, ignore_errors=True)
+        raise
+    return res
+
+
 def train_run(scene_path: str, out: str | Path, cfg: Config, resume: bool = False,
               progress: bool = True, evaluate_after: bool = True) -> dict:
     """Train (or resume) a run in ``out`` and evaluate it on the test views."""

@@ -4,7 +4,7 @@ A Scaffold-GS model is view-dependent (which Gaussians are drawn, their opacity,
 and rotation depend on the camera), so no PLY viewer shows what the codec decodes. Here every
 frame the browser asks for is rendered by the toolkit itself, through the same path as
 ``pgs render`` (:meth:`baseline.run.Renderable.render`): the decoded ``.pgs`` file (baked where
-that is faster, Predict-GS's f_c cache on), or a run folder's coded state. nerfview serves the
+that is faster, a feature provider's decoded-model cache on), or a run folder's coded state. nerfview serves the
 frames and lowers their resolution while the camera moves, from the rays per second it
 measures (on the CPU that is a few tens of pixels high); a still camera gets a full frame, up
 to the largest training image. The training and test cameras are drawn as frustums (grey /

@@ -23,7 +23,8 @@ SPEC = MethodSpec(
     notes=(("feature_sections", "SFP grid + fusion MLP + residual"),
            ("grown_anchors", "grown in stage 1 / after"),
            ("training_curve", "progressive training renders downsampled views for the first 30% "
-                              "of the schedule: its L1 there is on smaller images.")))
+                              "of the schedule: its L1 there is on smaller images.")),
+    demo=True)
 
 
 def register(registry) -> None:

@@ -9,7 +9,7 @@ import os
 import pytest
 
 from baseline.data.synthetic import make_scene
-from baseline.eval.benchmark import benchmark_records, run_benchmark
+from baseline.experiment.benchmark import benchmark_records, run_benchmark
 
 SETS = ["train.iterations=200", "train.log_every=1000", "model.voxel_size=0.05"]
 COMMON = ["demo"]
@@ -79,7 +79,7 @@ def test_ray_benchmark_equals_local_retries_killed_workers_and_resumes(dataset, 
 
 def test_a_run_that_keeps_failing_is_reported_by_name(dataset, tmp_path):
     """A run that fails on every attempt is reported with its name and error, not dropped."""
-    from baseline.eval.executors import Job, LocalExecutor
+    from baseline.experiment.executors import Job, LocalExecutor
     bad = Job(scene=str(dataset / "alpha"), out=str(tmp_path / "x"), method="baseline",
               method_patches=(), lmbda=0.004, seed=None, common_patches=("demo",),
               sets=("train.iterations=5", "data.images=\"nosuch\""), label="alpha: broken")
@@ -91,7 +91,7 @@ def test_a_run_that_keeps_failing_is_reported_by_name(dataset, tmp_path):
 def test_dataset_bd_keeps_each_reference_apart():
     """A method measured against the baseline and against a contender it extends gets one row
     per reference (per scene and their mean), not one overwriting the other."""
-    from baseline.eval.benchmark import dataset_bd
+    from baseline.experiment.benchmark import dataset_bd
 
     def item(m, ref, rate, seed="mean"):
         d = {"method": m, "seed": seed, "bd_rate": rate, "bd_psnr": 0.1}
@@ -118,7 +118,7 @@ def test_a_stalled_training_time_leaves_its_rows_train_mean_out():
     """A run that stalled over 5% of its training time (paused, or sharing its core), or marked
     untimed, leaves the dataset row's training-time mean empty ('-', with a note) instead of
     averaging its wait."""
-    from baseline.eval.benchmark import dataset_table, format_benchmark
+    from baseline.experiment.benchmark import dataset_table, format_benchmark
 
     def run(m, t, stall):
         return {"method": m, "lmbda": 0.004, "psnr": 25.0, "ssim": 0.9, "mb": 3.0, "fps": 50.0,

@@ -179,8 +179,8 @@ def test_demo_trains_three_rate_points_in_parallel_with_the_reference(tmp_path, 
     reference, as parallel jobs (the longer Predict-GS trainings first), then the report with
     the paired FPS bench and the synthetic-scene caveat; '--reference none' leaves it out."""
     import baseline.data.synthetic as synthetic
-    import baseline.eval.compare as compare
-    import baseline.eval.executors as executors
+    import baseline.experiment as compare
+    import baseline.experiment.executors as executors
 
     calls, batches = [], []
     monkeypatch.setattr(synthetic, "make_scene", lambda path: None)
@@ -486,3 +486,18 @@ def test_an_interrupted_make_scene_leaves_no_half_scene(tmp_path):
     rc, _ = interrupted(old, "--overwrite")
     assert rc == 130 and _digests(old) == before
     assert [p.name for p in tmp_path.iterdir()] == ["old"]
+
+
+def test_demo_contenders_come_from_the_method_specs(tmp_path, monkeypatch, capsys):
+    """pgs demo's default contenders are the registered methods whose spec is marked for the
+    demo; with none marked, one line and exit 2, nothing written."""
+    from baseline import registry
+    from baseline.cli.experiments import demo_contenders
+
+    assert demo_contenders() == ["predict-gs"]
+    assert registry.methods()["predict-gs"].demo
+    monkeypatch.setattr(registry, "methods", lambda: {})
+    out = tmp_path / "d"
+    assert main(["demo", "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--vs" in err[0] and not out.exists()

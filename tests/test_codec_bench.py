@@ -1,7 +1,7 @@
 """The codec benchmark runs end to end on a small payload and reports exact decoding."""
 import torch
 
-from baseline.codec.bench import format_codec_bench, run_codec_bench
+from baseline.bench.codec import format_codec_bench, run_codec_bench
 
 torch.set_num_threads(1)
 

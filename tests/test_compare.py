@@ -9,10 +9,10 @@ import torch
 
 import baseline.run as run_mod
 from baseline import registry
-from baseline.modelfile import file_info
+from baseline.modelfile import MODEL_FILE, file_info
 from baseline.config import ConfigError
 from baseline.data.synthetic import make_scene
-from baseline.eval.compare import (BASELINE, MODEL_FILE, RECORD, RECORD_FILES, archive_records,
+from baseline.experiment import (BASELINE, RECORD, RECORD_FILES, archive_records,
                                    is_finished, parse_methods, plan_runs, run_compare,
                                    with_own_lambdas)
 from baseline.train.trainer import CHECKPOINT_NAME, Trainer
@@ -303,7 +303,7 @@ def test_only_splits_a_comparison_and_remeasure_retakes_timings(scene, tmp_path)
     assert rows["entropy-factorized"]["stages_run"] == []
     # identical commands give identical reports: the paired FPS of a rebuilt report is the one
     # measured before, on the same files; --remeasure times it again
-    import baseline.eval.fpsbench as fpsbench
+    import baseline.bench.fps as fpsbench
     timed = []
     real_bench = fpsbench.bench_files
 
@@ -413,7 +413,7 @@ def test_reference_measures_every_run_against_the_uncompressed_model(scene, tmp_
     """--reference scaffold: the uncompressed run shares the protocol, is trained once (alone with
     --only reference), its float32 size counts every tensor the renderer reads (independent count
     below), each run's 'x smaller' and PSNR change come from it, and archived records keep it."""
-    from baseline.eval.compare import REFERENCE, parse_reference, plan_reference
+    from baseline.experiment import REFERENCE, parse_reference, plan_reference
     from baseline.eval.report import format_report, reference_table
     from baseline.run import load_run
 
@@ -461,7 +461,7 @@ def test_codec_patch_reencodes_without_retraining(scene, tmp_path):
     """--codec compact-codec: every run is encoded, decoded and measured again with the codec
     settings (smaller files, the same decoded PSNR), its training reused; the settings are
     recorded and reported; back without --codec the default files are written again."""
-    from baseline.eval.compare import codec_overrides
+    from baseline.experiment import codec_overrides
 
     out = tmp_path / "cmp"
     kw = dict(common_patches=["demo"], sets=SETS, progress=False, plots=False, echo=False)
@@ -485,7 +485,7 @@ def test_codec_patch_reencodes_without_retraining(scene, tmp_path):
     for a, b in zip(first["runs"], back["runs"]):
         assert b["stages_run"] == ["encode", "decode+eval"] and b["bytes"] == a["bytes"]
     # archived records (no checkpoint) cannot be coded again: a clear error, nothing rewritten
-    from baseline.eval.compare import archive_records
+    from baseline.experiment import archive_records
 
     arch = tmp_path / "arch"
     archive_records(out, arch, back)

@@ -225,7 +225,7 @@ def test_truck_hacpp_archive_is_what_its_command_plans_today(tmp_path):
     that holds only while the command plans exactly those run folders (same config hashes). A
     change to what a config trains changes its hash, and the archived records must then no
     longer be reported as this code's runs; this test names the change."""
-    from baseline.eval.compare import parse_methods, plan_runs, with_own_lambdas
+    from baseline.experiment import parse_methods, plan_runs, with_own_lambdas
 
     common = ["cpu"]
     methods = with_own_lambdas(

@@ -8,9 +8,9 @@ import torch
 
 from baseline.modelfile import decode_model
 from baseline.data.scene import load_scene
-from baseline.eval import fpsbench
+from baseline.bench import fps as fpsbench
 from baseline.eval.evaluate import evaluate
-from baseline.eval.fpsbench import Contender, bench_files, format_fps_bench, run_fps_bench
+from baseline.bench.fps import Contender, bench_files, format_fps_bench, run_fps_bench
 
 
 @pytest.fixture(scope="module")
@@ -156,7 +156,7 @@ def test_frame_bench_times_each_stage_against_its_reference_form(files, capsys):
     """pgs bench frame: per stage, the current code and its reference form (checked equal on
     every view inside the bench) for each file, the cache as decoded; printed per model."""
     from baseline.cli import main
-    from baseline.eval.fpsbench import FRAME_STAGES, bench_frame_files, format_frame_bench
+    from baseline.bench.fps import FRAME_STAGES, bench_frame_files, format_frame_bench
 
     res = bench_frame_files([str(files["baseline"]), str(files["predict-gs"])], rounds=2,
                             threads=1, max_views=2)

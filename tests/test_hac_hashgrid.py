@@ -338,7 +338,7 @@ def test_numba_backend_refuses_position_gradient(small_grid):
 
 
 def test_grid_bench_runs_small():
-    from baseline.hac.bench import format_grid_bench, run_grid_bench
+    from baseline.bench.grid import format_grid_bench, run_grid_bench
 
     rows = run_grid_bench(n_anchors=2000, threads=1, repeats=1)
     assert [r["backend"] for r in rows] == ["torch", "numba"]

@@ -38,6 +38,10 @@ def test_hostile_files_are_refused_cleanly(decoded_files, tmp_path):
              ("truncated", "flipped", "header", "taken from", "removed", "re-signed",
               "n_anchors")}
     assert kinds["taken from"] >= 10 and kinds["header"] >= 250 and kinds["re-signed"] >= 50
+    # the plugin's config section (in every file's config, as every registered section is),
+    # edited past the caps its RANGES declare
+    assert sum("header config.predict.residual_dim = 1000000" in c.name for c in cases) == 3
+    assert sum("header config.predict.mgrd_hidden" in c.name for c in cases) == 3
     st = run_cases(cases, cap_mb=1024, timeout=120.0)
     assert not st["findings"], "\n".join(f"{n}: {f}" for n, f in st["findings"][:30])
     assert st["decoded"] == sum(not c.must_fail for c in cases)

@@ -197,7 +197,7 @@ def test_lpips_from_the_two_files_the_field_ships(tmp_path, monkeypatch):
 
     import baseline.eval.metrics as metrics
     from baseline.cli import _lpips_weights
-    from baseline.eval.compare import lpips_id
+    from baseline.experiment import lpips_id
 
     net = _random_lpips(5)
     sd = net.state_dict()

@@ -551,7 +551,7 @@ def test_prefilter_closed_form_matches_the_matrix_form(seed):
 # ------------------------------------------------------------------------------------------
 
 def test_bench_rows():
-    from baseline.render.bench import format_raster_bench, run_raster_bench
+    from baseline.bench.raster import format_raster_bench, run_raster_bench
 
     rows = run_raster_bench(sizes=((300, 40, 30), (400, 48, 32)), backends=["cpu", "reference"],
                             threads=1, repeats=1, reference_max_pairs=50)

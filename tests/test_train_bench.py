@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from baseline.cli import main
 from baseline.timing import StageTimer, stage, timing
-from baseline.train.bench import STAGE_ORDER, format_train_bench, run_train_bench
+from baseline.bench.train import STAGE_ORDER, format_train_bench, run_train_bench
 
 
 def test_stages_are_free_without_a_timer_and_nest_with_one():

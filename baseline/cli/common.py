@@ -82,16 +82,6 @@ def _is_eval_record(path: Path) -> bool:
         isinstance(v, dict) and v.get("phase") == "decoded" for v in rec.values())
 
 
-def _scene_of(dec, scene_override):
-    """The scene of a decoded file when it is here (for the view-union PLY), else None."""
-    from baseline.run import load_scene_for
-
-    path = scene_override or dec.scene_path
-    if not path or not Path(path).exists():
-        return None
-    return load_scene_for(dec.cfg, path, progress=False)
-
-
 def _version() -> str:
     from importlib.metadata import PackageNotFoundError, version
 

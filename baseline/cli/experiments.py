@@ -10,12 +10,12 @@ from baseline.cli.common import _config_args, _config_sets, LPIPS_HELP, _lpips_w
 
 def cmd_bench(args) -> int:
     if args.what == "raster":
-        from baseline.render.bench import format_raster_bench, run_raster_bench
+        from baseline.bench.raster import format_raster_bench, run_raster_bench
 
         rows = run_raster_bench(threads=args.threads)
         print(format_raster_bench(rows))
     elif args.what == "codec":
-        from baseline.codec.bench import format_codec_bench, run_codec_bench, run_model_codec_bench
+        from baseline.bench.codec import format_codec_bench, run_codec_bench, run_model_codec_bench
 
         rows = []
         for model in (args.model or ["hac", "hacpp"]):
@@ -24,25 +24,25 @@ def cmd_bench(args) -> int:
         rows += [run_model_codec_bench(r) for r in args.run]
         print(format_codec_bench(rows))
     elif args.what == "grid":
-        from baseline.hac.bench import format_grid_bench, run_grid_bench
+        from baseline.bench.grid import format_grid_bench, run_grid_bench
 
         print(format_grid_bench(run_grid_bench(args.anchors or 100_000, threads=args.threads)))
     elif args.what == "fps":
-        from baseline.eval.fpsbench import bench_files, format_fps_bench
+        from baseline.bench.fps import bench_files, format_fps_bench
 
         rounds = 5 if args.rounds is None else args.rounds
         print(format_fps_bench(bench_files(args.run, scene=args.scene, rounds=rounds,
                                            threads=args.threads, device=args.device,
                                            max_views=args.views)))
     elif args.what == "train":
-        from baseline.train.bench import format_train_bench, run_train_bench
+        from baseline.bench.train import format_train_bench, run_train_bench
 
         print(format_train_bench(run_train_bench(args.run, steps=args.steps,
                                                  threads=args.threads or 1,
                                                  anchors=args.anchors, methods=args.vs,
                                                  clock=args.clock)))
     elif args.what == "frame":
-        from baseline.eval.fpsbench import bench_frame_files, format_frame_bench
+        from baseline.bench.fps import bench_frame_files, format_frame_bench
 
         rounds = 3 if args.rounds is None else args.rounds
         print(format_frame_bench(bench_frame_files(args.run, scene=args.scene, rounds=rounds,
@@ -53,11 +53,11 @@ def cmd_bench(args) -> int:
 
 def cmd_compare(args) -> int:
     """Side by side: the baseline and each --vs method at each lambda; report + plots."""
-    from baseline.eval.compare import run_compare
+    from baseline.experiment import run_compare
 
     sets = _config_sets(args)
     if args.archive:                   # checked now, not after hours of training
-        from baseline.eval.compare import is_compare_folder
+        from baseline.experiment import is_compare_folder
         from baseline.guard import check_output
 
         check_output(args.archive, command="compare", source=args.scene, folder=True,
@@ -77,7 +77,7 @@ def cmd_compare(args) -> int:
               f"again to resume", file=sys.stderr)
         return 130
     if args.archive:
-        from baseline.eval.compare import archive_records
+        from baseline.experiment import archive_records
 
         kept = archive_records(args.out, args.archive, results, overwrite=args.overwrite)
         print(f"archived the records of {len(kept)} finished run(s) and the report to {args.archive}")
@@ -86,7 +86,7 @@ def cmd_compare(args) -> int:
 
 def cmd_benchmark(args) -> int:
     """One comparison per scene of a dataset, on an executor; the dataset's report."""
-    from baseline.eval.benchmark import run_benchmark
+    from baseline.experiment.benchmark import run_benchmark
 
     sets = _config_sets(args)
     opts = {"retries": args.retries}
@@ -141,23 +141,35 @@ DEMO_SCOPE = ("These figures are the embedded synthetic scene's (1k iterations, 
               "real scenes (docs/RESULTS.md has those).")
 
 
+def demo_contenders() -> list[str]:
+    """The registered methods marked as the demo's contenders (:attr:`MethodSpec.demo`)."""
+    from baseline import registry
+
+    names = [name for name, spec in sorted(registry.methods().items()) if spec.demo]
+    if not names:
+        raise ValueError("no installed method is marked as the demo's contender: name one "
+                         "with --vs (pgs config --list lists the methods)")
+    return names
+
+
 def cmd_demo(args) -> int:
     """The main job on the embedded default scene: HAC vs Predict-GS at three rate points, side
     by side. The runs train in parallel, one per core (the local executor); the report ends in
     a verdict (BD-rate, equal-lambda changes, paired FPS and training-time ratios)."""
     from baseline.data.synthetic import make_scene
-    from baseline.eval.compare import (
+    from baseline.experiment import (
         parse_methods,
         parse_reference,
         plan_runs,
         run_compare,
     )
-    from baseline.eval.executors import Job, LocalExecutor
+    from baseline.experiment.executors import Job, LocalExecutor
     from baseline.guard import check_output, write_marker
     from baseline.train.trainer import available_cores
 
     from baseline.eval.metrics import find_lpips_weights
 
+    vs = args.vs or demo_contenders()         # before anything is written
     out = Path(args.out)
     scene = out / "scene"
     # the demo is a comparison on its own scene: new, empty, or an earlier demo (to resume)
@@ -171,7 +183,7 @@ def cmd_demo(args) -> int:
     lpips = find_lpips_weights()            # LPIPS whenever both weight files are here
     lambdas = list(args.lambdas or DEMO_LAMBDAS)
     common = ["demo"] + args.patch
-    methods = parse_methods(args.vs or ["predict-gs"])
+    methods = parse_methods(vs)
     ref = None if args.reference == "none" else args.reference
     jobs = [Job(scene=str(scene.resolve()), out=str(out.resolve()), method=s.method.name,
                 method_patches=tuple(s.method.patches), lmbda=s.lmbda, seed=None,
@@ -193,7 +205,7 @@ def cmd_demo(args) -> int:
             for label, err in res["failed"]:
                 print(f"demo: {label} failed: {err}", file=sys.stderr)
             return 1
-        run_compare(str(scene), out, vs=args.vs or ["predict-gs"], lambdas=lambdas,
+        run_compare(str(scene), out, vs=vs, lambdas=lambdas,
                     common_patches=common, sets=args.set, progress=False, plots=True,
                     reference=ref, paired_fps=True, scope=DEMO_SCOPE, lpips_weights=lpips,
                     done_before={r["run_dir"]: r["stages_run"] for r in res["done"]})
@@ -335,7 +347,9 @@ def add_parsers(sub) -> None:
     p.add_argument("--overwrite", action="store_true",
                    help="write into a folder holding another output of pgs")
     p.add_argument("--patch", action="append", default=[], help="extra patches for every run")
-    p.add_argument("--vs", action="append", default=[], help="contenders (default predict-gs)")
+    p.add_argument("--vs", action="append", default=[],
+                   help="contenders (default: the installed methods whose spec is marked for the "
+                        "demo; `pgs config --list` lists the methods)")
     p.add_argument("--lambda", dest="lambdas", type=float, nargs="+", default=None,
                    help="rate points (default 0.004 0.002 0.001: three, for a BD-rate)")
     p.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",

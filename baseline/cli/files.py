@@ -5,7 +5,7 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-from baseline.cli.common import DEVICE_HELP, LPIPS_HELP, _lpips_weights, _read_record, _scene_of
+from baseline.cli.common import DEVICE_HELP, LPIPS_HELP, _lpips_weights
 
 
 def cmd_render(args) -> int:
@@ -70,88 +70,11 @@ def cmd_encode(args) -> int:
 
 
 def cmd_decode(args) -> int:
-    import shutil
+    from baseline.run import decode_run
 
-    import torch
-
-    from baseline.modelfile import decode_model
-    from baseline.contracts import feature_cache
-    from baseline.eval.export import export_run_ply, export_sh_ply
-    from baseline.eval.metrics import format_psnr
-    from baseline.guard import check_output, write_marker
-    from baseline.run import Renderable, write_json_atomic
-
-    out = Path(args.output or Path(args.file).with_suffix(""))
-
-    def own(folder):             # written before folders were marked: its record names the file
-        try:
-            rec = _read_record(folder / "results.json")
-        except ValueError:
-            return False
-        return "ply" in rec and isinstance(rec.get("file"), str) and \
-            Path(rec["file"]).resolve() == Path(args.file).resolve()
-
-    # never a run's folder, never inside a scene, never a folder of the user's files
-    check_output(out, command="decode", source=args.file, folder=True, overwrite=args.overwrite,
-                 own=own, shares=("eval",))
-    dec = decode_model(args.file)          # nothing is written unless the file decodes
-    print(f"decoded {args.file}: {dec.model.n_anchors} anchors in {dec.decode_s:.2f} s")
-    res = {"file": str(args.file), "bytes": Path(args.file).stat().st_size, "decode_s": dec.decode_s,
-           "anchors": dec.model.n_anchors}
-    created = not out.exists()
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-        write_marker(out, "decode", args.file)
-        center = dec.header.get("view_center")
-        r = None
-        if args.render != "none" or center is None:
-            r = Renderable(args.file, args.scene, device=args.device, decoded=dec)
-        if args.render != "none":
-            from baseline.eval.evaluate import method_key
-            from baseline.eval.metrics import default_lpips
-
-            res[args.render] = r.evaluate(
-                args.render, render_dir=out / args.render / method_key(r.iterations),
-                lpips_fn=default_lpips()[0])
-            t = res[args.render]
-            print(f"{args.render}: PSNR {format_psnr(t['psnr'], 3)}  SSIM {t['ssim']:.4f}  "
-                  f"FPS {t['fps']:.1f}")
-            prov = feature_cache(r.model)
-            if prov is not None:             # Predict-GS: FPS without the decoded-model f_c cache
-                prov.clear_cache()
-                r.model.unbake()             # (a bake holds f_c's first-layer terms)
-                nc = r.evaluate(args.render)
-                prov.build_cache(r.model.xyz)
-                r.model.bake_if_faster()
-                t["fps_no_cache"] = nc["fps"]
-                print(f"FPS without the f_c cache {nc['fps']:.1f} (with {t['fps']:.1f})")
-        model = r.model if r is not None else dec.model
-        model.to("cpu")
-        ply = out / "point_cloud.ply"
-        scene = r.scene if r is not None else _scene_of(dec, args.scene)
-        if scene is not None and r is None:        # (Renderable checked its own)
-            from baseline.data.scene import scene_bounds
-            from baseline.scaffold.model import check_bounds
-
-            check_bounds(model, str(args.file), *scene_bounds(scene))
-        if scene is not None and scene.train_cameras:
-            model.unbake()
-            res["ply"] = export_sh_ply(model, scene, ply, sh_degree=args.sh_degree,
-                                       source=str(args.file))
-            _print_ply(res["ply"])
-        else:
-            n = export_run_ply(model, None, ply,
-                               center=None if center is None else torch.tensor(center))
-            res["ply"] = {"path": str(ply), "gaussians": n, "sh_degree": 0,
-                          "note": "scene not here: one viewpoint's Gaussians, degree-0 colours"}
-            print(f"wrote {n} Gaussians to {ply}: the scene {dec.scene_path} is not here, so "
-                  f"these are the Gaussians seen from the mean training camera with degree-0 "
-                  f"colours (pass --scene PATH for the view-union export with SH colours)")
-        write_json_atomic(out / "results.json", res)
-    except BaseException:
-        if created:                          # a failed decode leaves nothing behind
-            shutil.rmtree(out, ignore_errors=True)
-        raise
+    decode_run(args.file, args.output or Path(args.file).with_suffix(""), scene=args.scene,
+               render=args.render, device=args.device, sh_degree=args.sh_degree,
+               overwrite=args.overwrite)
     return 0
 
 
@@ -168,18 +91,8 @@ def cmd_info(args) -> int:
     return 0
 
 
-def _print_ply(r: dict) -> None:
-    from baseline.eval.metrics import format_psnr
-
-    print(f"wrote {r['gaussians']} Gaussians to {r['path']} (the union over the training views "
-          f"of those drawn, {r['drawn_per_view']:.0f} per view; SH degree {r['sh_degree']}); "
-          f"fidelity on {r['views']} test views: {format_psnr(r['psnr_vs_model'])} against the "
-          f"model's render, {format_psnr(r['psnr_ply'])} against the ground truth (model "
-          f"{format_psnr(r['psnr_model'])})")
-
-
 def cmd_export_ply(args) -> int:
-    from baseline.eval.export import export_run_ply, export_sh_ply
+    from baseline.eval.export import export_run_ply, export_sh_ply, format_sh_export
     from baseline.guard import check_output
     from baseline.run import coded_state, load_run
 
@@ -202,8 +115,10 @@ def cmd_export_ply(args) -> int:
         print(f"wrote {n} Gaussians to {out} (a run before HAC's coding: one viewpoint's "
               f"Gaussians, degree-0 colours)")
         return 0
-    _print_ply(export_sh_ply(trainer.model, scene, out, coded=coded, sh_degree=args.sh_degree,
-                             backend=trainer.cfg.train.rasterizer, source=str(args.run)))
+    print(format_sh_export(export_sh_ply(trainer.model, scene, out, coded=coded,
+                                         sh_degree=args.sh_degree,
+                                         backend=trainer.cfg.train.rasterizer,
+                                         source=str(args.run))))
     return 0
 
 

@@ -4,7 +4,7 @@ HAC codes the [N, K] mask bits with one global probability. They are far from in
 offset slots are almost always on or off, and an anchor's K bits go together (truck, lambda
 0.004: 70 distinct patterns of 1024 in 171k anchors). Here each anchor's K bits form one symbol,
 range coded with the file's own pattern histogram (stored as coded gaps and counts). On truck:
-206 KB -> 67 KB (HAC), 212 KB -> 83 KB (Predict-GS), the same masks.
+206 KB -> 67 KB and 212 KB -> 83 KB for two methods' files, the same masks.
 """
 from __future__ import annotations
 

@@ -1,6 +1,6 @@
 """Lossless coding of the 16-bit anchor positions (``codec.positions = "sorted"``).
 
-HAC and Predict-GS store the quantized anchor positions directly: 48 bits per anchor, about a
+The default coding stores the quantized anchor positions directly: 48 bits per anchor, about a
 quarter of a truck file. The positions are a set (the anchors can be coded in any order, as long
 as every other attribute follows the same order), and anchors sit on a few voxel lattices, so:
 

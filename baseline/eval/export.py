@@ -326,3 +326,12 @@ def export_sh_ply(model, scene, path, *, coded=None, sh_degree: int = 3,
                   comments=comments)
     return {"gaussians": n, "drawn_per_view": per_view, "sh_degree": sh_degree, **fid,
             "path": str(path)}
+
+
+def format_sh_export(r: dict) -> str:
+    """One line on an :func:`export_sh_ply` result: the Gaussians written and the PLY's fidelity."""
+    return (f"wrote {r['gaussians']} Gaussians to {r['path']} (the union over the training views "
+            f"of those drawn, {r['drawn_per_view']:.0f} per view; SH degree {r['sh_degree']}); "
+            f"fidelity on {r['views']} test views: {format_psnr(r['psnr_vs_model'])} against the "
+            f"model's render, {format_psnr(r['psnr_ply'])} against the ground truth (model "
+            f"{format_psnr(r['psnr_model'])})")

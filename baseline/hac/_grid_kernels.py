@@ -3,7 +3,7 @@
 The PyTorch path of :meth:`baseline.hac.hashgrid.GridLevels.encode` materializes per-corner
 index and weight tensors ([n, L, 2^dim] each, several temporaries) and gathers through
 ``embedding_bag``; on 100k anchors x (12 3D + 12 plane levels) that measured 175 ms forward and
-310 ms backward on 2 cores, the largest cost of a HAC/Predict-GS training step. These kernels
+310 ms backward on 2 cores, the largest cost of a training step. These kernels
 compute corners, weights and hashes in registers:
 
 * :func:`grid_fwd`: ``out[i, l*F:(l+1)*F] = sum_c w_c table[idx_c] / sum_c w_c`` (HAC's

@@ -6,7 +6,7 @@ mixture for the main coded attribute (docs/method.md section 6; YihangChen-ee/HA
   logit per value (3 d), for every other attribute mean and scale (2 d), then one
   quantization-step adjustment per attribute. For HAC's feat 50 / scaling 6 / offsets 30 that is
   HAC++'s 225 outputs.
-* **Channel context** for the main attribute (HAC: feat; Predict-GS: its residual): its d values
+* **Channel context** for the main attribute (HAC: feat; a predicting provider: its residual): its d values
   are split into ``n_chunks`` (5) contiguous chunks as evenly as possible (50 -> 5 x 10, 25 ->
   5 x 5, 10 -> 5 x 2; the documented choice for dims HAC++ does not define). Chunk k's network
   sees the already quantized chunks 0..k-1 and the hyperprior's [mean | scale | logit] of the

@@ -4,7 +4,7 @@ One module of about 800 lines: the grid's layout arithmetic, its straight-throug
 the hash-bits term and the dispatch to the numba kernels are one component's parts, each
 checked against the same layout.
 
-Also the generic binary feature field that Predict-GS reuses as its Spatial Feature Pool: every
+Also a generic binary feature field that a feature provider can reuse as its own grid: every
 size is a constructor argument, and several instances can live side by side.
 
 Layout (defaults = HAC, 96 output dims, 1,766,272 binary values):

@@ -1,7 +1,7 @@
 """Baked Gaussian decoding for decoded models: what does not depend on the view, computed once.
 
-A decoded model is frozen: its anchors, coded values, masks and (Predict-GS) predicted features
-f_c never change between frames. Every head that turns an anchor into its K neural Gaussians
+A decoded model is frozen: its anchors, coded values, masks and (for a predicting provider) predicted
+features never change between frames. Every head that turns an anchor into its K neural Gaussians
 (the decoder's opacity, cov and color MLPs, and a refiner's heads such as MGRD's shape and
 appearance heads) is ``Linear(x ; v ; d) -> ReLU -> Linear`` with ``x`` per anchor and ``v, d``
 the view direction and distance, so its first layer splits into
@@ -21,8 +21,8 @@ What changes against :meth:`AnchorModel.decode`: the first layer's sums run in a
 logit is within rounding of 0 may be kept by one form and not the other (its opacity is then
 ~1e-7: invisible). Tests compare the two forms on trained models, image and Gaussians.
 
-The bake holds ``(N, H)`` floats for H hidden units in all (baseline 3 x 50 = 150; Predict-GS
-with MGRD + 2 x 64 = 278), built by :meth:`AnchorModel.bake`. Decoded models are baked where
+The bake holds ``(N, H)`` floats for H hidden units in all (baseline 3 x 50 = 150; with a
+refiner of 2 x 64 more, 278), built by :meth:`AnchorModel.bake`. Decoded models are baked where
 that was measured faster, on CUDA (:meth:`AnchorModel.bake_if_faster`); ``pgs bench fps`` times
 both forms anywhere.
 """

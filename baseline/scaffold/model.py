@@ -109,11 +109,10 @@ class AnchorModel(nn.Module):
         # The provider draws its initial values from a stream of its own (seeded from the run's
         # seed), so every method trained with one seed starts from the same decoder. The heads'
         # initial weights decide which of the K slots start opaque (features start at zero), a
-        # lottery that training barely changes; a provider that draws random values (the SFP's
-        # grid and fusion MLP) otherwise shifted the decoder's draw and with it the lottery:
-        # seed 0 on truck started HAC at 42% kept and Predict-GS at 70%
-        # (docs/notes/predict-gs-gaussian-count.md). HAC's per-anchor provider draws nothing,
-        # so its decoder is unchanged.
+        # lottery that training barely changes; a provider that draws random values (a grid,
+        # an MLP) would otherwise shift the decoder's draw and with it the lottery (on truck,
+        # seed 0: 42% against 70% kept at the start; docs/notes/predict-gs-gaussian-count.md).
+        # The per-anchor provider draws nothing, so its decoder is the same either way.
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed((torch.initial_seed() + PROVIDER_SEED_OFFSET) % (1 << 63))
             self.provider = provider_factory(self)
@@ -143,12 +142,10 @@ class AnchorModel(nn.Module):
         self.baked = None
 
     def bake_if_faster(self) -> bool:
-        """Bake a decoded model where baking was measured faster: on CUDA (H100, truck ``-r 4``
-        at 980x544: 1.06x the FPS of the plain form for HAC, 1.08x for Predict-GS), not on the
-        CPU, where neither model gains at both thread counts (truck lambda 0.004, 2 threads:
-        0.94x for HAC, 1.05x for Predict-GS; 1 thread: 1.02x for HAC, 0.91x for Predict-GS;
-        gathering the per-anchor [M, H] term moves more memory than the first layers' GEMMs
-        it replaces, which run from cache). Returns whether the model is now baked."""
+        """Bake a decoded model where baking is faster: on CUDA, not on the CPU, where
+        gathering the per-anchor [M, H] term moves more memory than the first layers' GEMMs it
+        replaces, which run from cache (the measurements: docs/RESULTS.md, ``pgs bench fps``).
+        Returns whether the model is now baked."""
         if self.fixed_values is None or not self.xyz.is_cuda:
             self.baked = None
             return False

@@ -1,6 +1,6 @@
 """Hostile ``.pgs`` inputs and a decoder harness that runs them under a memory cap.
 
-``crafted_cases(files)`` builds, from valid files (e.g. a HAC and a Predict-GS file), the inputs
+``crafted_cases(files)`` builds, from valid files (files of different methods), the inputs
 a hostile but fair tester tries (``special_cases(files)`` adds those that are not bytes: a
 ``/proc`` file that never ends, a device, a FIFO, a sparse file declaring a 1.5 GiB section):
 truncations, byte and bit flips, header fields edited (CRCs
@@ -112,8 +112,7 @@ HEADER_EDITS = [
     ("config.train.log_every", 0), ("config.model.feature_provider", "nosuch"),
     ("config.model.refiner", "nosuch"), ("config.model.nosuch", 1), ("config.nosuch", {}),
     ("config.patches", "x"), ("config.entropy.mask_threshold", 2.0),
-    ("config.predict.residual_dim", 100000), ("config.predict.fusion_hidden", 10 ** 6),
-    ("config.predict.mgrd_hidden", 10 ** 6), ("module_state", "x"),
+    ("module_state", "x"),
     ("module_state.provider", 3), ("module_state.provider.grid.log2_table_3d", 30),
     ("module_state.provider.grid.resolutions_3d", [2 ** 20]), ("weight_dtype", "float8"),
     ("weight_dtype", 16), ("position_coding", "octree"), ("position_coding", 1),
@@ -134,6 +133,26 @@ ID_ONLY_EDITS = [("scene", "/somewhere/else"), ("scene", None), ("view_center", 
                  ("config.train.seed", 7), ("weight_dtype", "float16"),
                  ("position_coding", "sorted"), ("mask_coding", "patterns"),
                  ("grid_coding", "used")]
+
+
+def plugin_section_edits(header: dict) -> list:
+    """Edits of the config sections plugins registered (``cfg.ext``) that the file's header
+    holds: every integer key with a declared range (``RANGES``) set far past its cap (at least
+    10**6: sizes a decoder would allocate from)."""
+    from baseline import registry
+
+    registry.ensure_loaded()
+    cfg = header.get("config")
+    edits = []
+    for name in registry.names("config_section") if isinstance(cfg, dict) else ():
+        section = cfg.get(name)
+        if not isinstance(section, dict):
+            continue
+        ranges = getattr(registry.get("config_section", name), "RANGES", {})
+        for key, (_, high) in ranges.items():
+            if isinstance(section.get(key), int) and not isinstance(section.get(key), bool):
+                edits.append((f"config.{name}.{key}", max(int(high) + 1, 10 ** 6)))
+    return edits
 
 
 def crafted_cases(files: dict, n_random: int = 200, seed: int = 0) -> list:
@@ -169,7 +188,7 @@ def crafted_cases(files: dict, n_random: int = 200, seed: int = 0) -> list:
                 cases.append(Case(f"{label}: 8 bytes at {i} overwritten", bytes(b)))
         # header edits, container re-made (CRCs valid, digests as encoded)
         sec_list = list(secs.items())
-        for path, value in HEADER_EDITS:
+        for path, value in HEADER_EDITS + plugin_section_edits(header):
             try:
                 h = _edit(header, path, value)
             except (KeyError, IndexError, TypeError, ValueError):

@@ -6,7 +6,7 @@ machine has the ``.pgs`` files but not the scene. This tool splits the job:
 
     # here, where the scene is: the test cameras of the files' scene, a few KB
     python tools/gpu/gpu_fps.py export RUN_OR_FILE.pgs -o cams.pt
-    # there: the same one-process bench (baseline.eval.fpsbench.run_fps_bench: decode every
+    # there: the same one-process bench (baseline.bench.fps.run_fps_bench: decode every
     # file, rotate the order every round, median over rounds, ratios to the first file)
     python tools/gpu/gpu_fps.py bench --cams cams.pt --run A.pgs --run B.pgs --device cuda [--scale 1 --scale 4]
 
@@ -35,7 +35,7 @@ from baseline.camera import Camera  # noqa: E402
 
 def export(src: str, out: str) -> None:
     from baseline.modelfile import decode_model
-    from baseline.eval.fpsbench import resolve_model_file
+    from baseline.bench.fps import resolve_model_file
     from baseline.run import load_scene_for
 
     dec = decode_model(resolve_model_file(src))
@@ -54,7 +54,7 @@ def _load(cams_file: str, runs, device: str):
     and moved there, labelled by its name (a run folder's model.pgs: the folder's)."""
     from baseline.modelfile import decode_model
     from baseline.device import resolve_device
-    from baseline.eval.fpsbench import resolve_model_file
+    from baseline.bench.fps import resolve_model_file
 
     blob = torch.load(cams_file, weights_only=True)
     cams0 = [Camera(**c) for c in blob["cameras"]]
@@ -79,7 +79,7 @@ def _scaled(cams0, k: int):
 def bench(cams_file: str, runs, device: str, rounds: int, scales, out_json: str | None,
           backend: str = "auto") -> None:
     from baseline.device import device_name
-    from baseline.eval.fpsbench import contenders_of, run_fps_bench
+    from baseline.bench.fps import contenders_of, run_fps_bench
     from baseline.render import resolve_backend
 
     cams0, bg, dev, models = _load(cams_file, runs, device)
@@ -109,7 +109,7 @@ def frame(cams_file: str, runs, device: str, rounds: int, scales, backend: str =
     (prefilter, decoding, rasterization, and baked decoding), at each scale; printed and
     returned as {scale: {label: stages}}."""
     from baseline.device import device_name
-    from baseline.eval.fpsbench import bench_frame_format_model, time_frame_stages
+    from baseline.bench.fps import bench_frame_format_model, time_frame_stages
 
     cams0, bg, dev, models = _load(cams_file, runs, device)
     out = {}

@@ -23,7 +23,7 @@ import time
 
 import torch
 
-from baseline.eval.fpsbench import _decode_files
+from baseline.bench.fps import _decode_files
 from baseline.pipeline import visible_anchors
 from baseline.scaffold.baked import BakedDecoder
 

@@ -1,7 +1,7 @@
 """The comparison report: tables for the terminal and ``report.md``, computed from stored results.
 
-Input is the ``results.json`` structure written by :func:`baseline.eval.compare.run_compare`
-(``runs``: one flat row per method and lambda, see :func:`baseline.eval.compare.make_row`).
+Input is the ``results.json`` structure written by :func:`baseline.experiment.run_compare`
+(``runs``: one flat row per method and lambda, see :func:`baseline.experiment.make_row`).
 Nothing here measures anything: every figure is a stored measurement or arithmetic on them
 (ratios to the baseline, Bjontegaard deltas).
 

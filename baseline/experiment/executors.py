@@ -1,7 +1,7 @@
 """Where the independent runs of a benchmark execute.
 
 A run is a :class:`Job`: a scene, a comparison folder and one run's method, lambda and seed,
-all that :func:`run_job` needs to rebuild its :class:`~baseline.eval.compare.RunSpec` and bring
+all that :func:`run_job` needs to rebuild its :class:`~baseline.experiment.plan.RunSpec` and bring
 it to the finished state (train, encode, decode + evaluate; finished stages are skipped, so a
 job run twice trains nothing). Records, resume and reports do not know where a job ran.
 
@@ -35,7 +35,7 @@ from baseline import registry
 class Job:
     scene: str                      # scene folder (absolute)
     out: str                        # the scene's comparison folder (absolute)
-    method: str                     # method name ("baseline", "predict-gs", ...)
+    method: str                     # method name ("baseline" or a --vs value)
     method_patches: tuple           # the method's patches
     lmbda: Optional[float]
     seed: Optional[int]
@@ -48,7 +48,7 @@ class Job:
 
 def job_spec(job: Job):
     """The job's RunSpec, planned exactly as ``pgs compare`` plans it (same folder, same hash)."""
-    from baseline.eval.compare import Method, plan_reference, plan_runs
+    from baseline.experiment.plan import Method, plan_reference, plan_runs
 
     if job.reference:
         return plan_reference(job.out, Method(job.method, tuple(job.method_patches)),
@@ -64,7 +64,8 @@ def run_job(job: Job, threads: int = 0) -> dict:
     if threads > 0:                      # before the trainer starts its thread pools
         os.environ["OMP_NUM_THREADS"] = str(threads)
     from baseline import registry as reg
-    from baseline.eval.compare import lpips_id, run_one
+    from baseline.experiment.records import lpips_id
+    from baseline.experiment.stages import run_one
     from baseline.eval.metrics import load_lpips
 
     reg.ensure_loaded()
@@ -74,7 +75,7 @@ def run_job(job: Job, threads: int = 0) -> dict:
     _maybe_fail_for_tests(job)
     spec = job_spec(job)
     if job.reference:
-        from baseline.eval.compare import run_reference
+        from baseline.experiment.stages import run_reference
 
         row = run_reference(spec, job.scene, progress=False)
         return {"label": job.label or f"reference {job.method}", "run_dir": str(spec.dir),

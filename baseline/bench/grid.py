@@ -1,6 +1,6 @@
 """Hash-grid benchmark: the numba kernels against the PyTorch path, in one process.
 
-``pgs bench grid [--anchors N] [--threads T]`` (= ``python -m baseline.hac.bench``)
+``pgs bench grid [--anchors N] [--threads T]`` (= ``python -m baseline.bench.grid``)
 
 Times one training-path query of HAC's default grid (12 3D levels + 3 x 4 plane levels, 96
 outputs) at ``N`` random positions (forward, then forward + backward to the tables), best of a
@@ -76,7 +76,7 @@ def format_grid_bench(rows: Sequence[Dict]) -> str:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m baseline.hac.bench", description=__doc__)
+    ap = argparse.ArgumentParser(prog="python -m baseline.bench.grid", description=__doc__)
     ap.add_argument("--anchors", type=int, default=100_000)
     ap.add_argument("--threads", type=int, default=None)
     args = ap.parse_args(argv)

@@ -1,7 +1,7 @@
 """Codec benchmark: encode / decode time and throughput of the entropy-coding path.
 
 ``pgs bench codec [--anchors N] [--threads T] [--run RUN]...``
-(= ``python -m baseline.codec.bench``, which also takes ``--model hac|hacpp|factorized``;
+(= ``python -m baseline.bench.codec``, which also takes ``--model hac|hacpp|factorized``;
 ``pgs bench codec`` runs ``hac`` and ``hacpp`` side by side, or ``--model M`` repeated)
 
 Measures, for a synthetic payload shaped like an average Mip-NeRF360 HAC model (feat 50,

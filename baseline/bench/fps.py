@@ -9,8 +9,8 @@ model's FPS as the median over rounds and its speed ratio to the first model fro
 pairs (median, min and max).
 
 Every model is timed in up to three forms (``Contender.form``), set up outside the timed frames:
-``plain`` (:meth:`AnchorModel.decode`; a provider that can cache its per-anchor features, as
-Predict-GS's f_c, with its cache: how a decoded model renders), ``baked``
+``plain`` (:meth:`AnchorModel.decode`; a provider that can cache its per-anchor features,
+with its cache: how a decoded model renders), ``baked``
 (:mod:`baseline.scaffold.baked`: the view-independent part of every decoder head computed once)
 and, for a provider with a cache, ``no cache`` (features recomputed every view). Besides the
 ratio to the first contender, each row has its ratio to the first model in the same form (its
@@ -280,8 +280,8 @@ def time_frame_stages(model, cameras, background, *, rounds: int = 3,
     * ``rasterize``: the kept Gaussians through the backend (one form; for the frame's share);
     * ``baked``: :class:`~baseline.scaffold.baked.BakedDecoder` decoding vs ``decode`` (a model
       that can be baked only; not part of the frame total: the frame as the model renders);
-    * ``refiner``: the refiner's heads alone (Predict-GS's MGRD: view-dependent, run on every
-      visible anchor), a share of ``decode``; models with an active refiner only.
+    * ``refiner``: the refiner's heads alone (view-dependent: run on every visible
+      anchor), a share of ``decode``; models with an active refiner only.
 
     Returns ``{stage: {"new": [rounds] s/view, "ref": [rounds] s/view or None}}``, plus
     ``gaussians`` per view. On every view the two prefilters must choose the same anchors and
@@ -404,7 +404,7 @@ def format_frame_bench(res: dict) -> str:
                  "this process and checked equal; x ref = reference time / this time (> 1: "
                  "faster); baked dec: decoding with the view-independent head terms "
                  "precomputed (baseline/scaffold/baked.py) against decode, not in the frame "
-                 "total; refiner: the refiner's heads alone (Predict-GS's MGRD), part of decode.")
+                 "total; refiner: the refiner's heads alone, part of decode.")
     return "\n".join(lines)
 
 

@@ -3,7 +3,7 @@ dataset's report in the layout of the papers' tables.
 
 For each scene ``OUT/<scene>/`` is exactly the folder ``pgs compare`` would make (the same run
 folders, config hashes, resume and archived records); every unfinished run becomes one job of
-the executor (:mod:`baseline.eval.executors`: this process, N local processes, or Ray tasks on a
+the executor (:mod:`baseline.experiment.executors`: this process, N local processes, or Ray tasks on a
 cluster), finished runs are skipped, so a benchmark that was stopped, or whose cluster lost a
 node, is completed by running the same command again. When all jobs are done, each scene's
 comparison report is written (``pgs compare`` reusing every run), then the dataset's:
@@ -27,8 +27,9 @@ import time
 from pathlib import Path
 from typing import Optional
 
-from baseline.eval.compare import BASELINE, parse_methods, plan_runs, is_finished, lpips_id
-from baseline.eval.executors import Job, make_executor
+from baseline.experiment.executors import Job, make_executor
+from baseline.experiment.plan import BASELINE, parse_methods, plan_runs
+from baseline.experiment.records import is_finished, lpips_id
 from baseline.eval.report import survey_datasets
 from baseline.fileio import read_text_bounded, write_text_atomic
 
@@ -85,7 +86,7 @@ def run_benchmark(root, out, vs: list[str] = (), lambdas=None, seeds=None, scene
                   sets: list[str] = (), executor: str = "local", executor_options=None,
                   lpips_weights: Optional[str] = None, plots: bool = True,
                   progress: bool = True, echo: bool = True, overwrite: bool = False) -> dict:
-    from baseline.eval.compare import run_compare
+    from baseline.experiment.runner import run_compare
     from baseline.guard import check_output, write_marker
     from baseline.run import write_json_atomic
 

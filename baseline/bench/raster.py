@@ -1,6 +1,6 @@
 """Rasterizer benchmark: every available backend, side by side, in one process.
 
-    python -m baseline.render.bench [--threads N] [--repeats R] [--sizes 50000x320x240,...]
+    python -m baseline.bench.raster [--threads N] [--repeats R] [--sizes 50000x320x240,...]
 
 (``pgs bench raster`` calls :func:`run_raster_bench` and :func:`format_raster_bench`.)
 
@@ -79,7 +79,7 @@ def make_scene(n: int, width: int, height: int, seed: int = 0, device="cpu",
 
 def count_tile_pairs(tensors, camera) -> int:
     """Number of (Gaussian, tile) intersections of the opacity-aware boxes."""
-    from .reference import project_reference
+    from baseline.render.reference import project_reference
 
     with torch.no_grad():
         means, quats, scales, opacities, _ = (t.detach().cpu().double() for t in tensors)
@@ -90,7 +90,7 @@ def count_tile_pairs(tensors, camera) -> int:
 
 def available_backends() -> list[str]:
     """Backends that can run here: always cpu and reference, gsplat with CUDA + gsplat."""
-    from .gsplat_backend import gsplat_available
+    from baseline.render.gsplat_backend import gsplat_available
 
     names = ["cpu", "reference"]
     if torch.cuda.is_available() and gsplat_available():
@@ -104,7 +104,7 @@ def _sync(device) -> None:
 
 
 def _time_backend(backend: str, tensors, camera, repeats: int, weight, warmup=True):
-    from . import rasterize
+    from baseline.render import rasterize
 
     device = tensors[0].device
 
@@ -161,7 +161,7 @@ def run_raster_bench(sizes: Iterable[Sequence[int]] = DEFAULT_SIZES,
         backend best; None without a reference time) and ``skipped`` (None, or why the backend
         was not run; its times are then None).
     """
-    from . import cpu as cpu_backend
+    from baseline.render import cpu as cpu_backend
 
     names = list(backends) if backends is not None else available_backends()
     old_torch_threads = torch.get_num_threads()
@@ -302,7 +302,7 @@ def _parse_sizes(text: str):
 
 
 def main(argv=None) -> None:
-    ap = argparse.ArgumentParser(prog="python -m baseline.render.bench",
+    ap = argparse.ArgumentParser(prog="python -m baseline.bench.raster",
                                  description="Time the rasterizer backends side by side.")
     ap.add_argument("--sizes", type=_parse_sizes, default=DEFAULT_SIZES,
                     help="comma-separated NxWxH, default 50000x320x240,200000x640x480")
@@ -324,7 +324,7 @@ def main(argv=None) -> None:
           f"backends: {', '.join(backends or available_backends())}", flush=True)
     print(f"machine: {os.cpu_count()} CPU cores, load average {_loadavg()} before the run "
           "(other processes compete for the cores)", flush=True)
-    from .cpu import kernels
+    from baseline.render.cpu import kernels
 
     kernels()  # compile / load the CPU kernels before timing (announced if compiling)
     cpu_tt = None if args.cpu_torch_threads < 0 else args.cpu_torch_threads
