@@ -13,6 +13,7 @@ import torch
 
 from baseline.modelfile import decode_model, encode_model
 from baseline.config import ConfigError, build_config, config_hash
+from baseline.contracts import feature_cache
 from baseline.data.synthetic import make_scene
 from baseline.device import DeviceError, resolve_device, uniform
 from baseline.eval.evaluate import evaluate
@@ -126,8 +127,8 @@ def test_gpu_run_encodes_on_the_cpu_and_decodes_exactly(cuda_run):
     assert all(v.is_cuda for v in dec.model.fixed_values.values())
     post_gpu = evaluate(dec.model, scene, cams, phase="decoded", backend="auto")
     assert abs(post_gpu["psnr"] - post_cpu["psnr"]) < 0.05, (post_gpu, post_cpu)
-    prov = dec.model.provider
-    if hasattr(prov, "build_cache"):
+    prov = feature_cache(dec.model)
+    if prov is not None:                    # features that depend on positions only (the SFP)
         prov.build_cache(dec.model.xyz)
         assert prov._cache.is_cuda
         cached = evaluate(dec.model, scene, cams, phase="decoded", backend="auto")
