@@ -153,12 +153,15 @@ class Refiner(_Module):
     """Additive corrections of the decoded Gaussians (optional; baseline: ``none``).
 
     ``forward(idx [M], values {name: [M, d]}, view_dir [M, 3], dist [M, 1])`` returns the
-    corrections added to the decoder heads' pre-activations: ``{"opacity": [M, K], "cov":
-    [M, K, 7], "color": [M, K, 3]}`` (any subset). ``active`` switches it off and on (a
-    training schedule may start it later).
+    corrections ``{"opacity": [M, K], "cov": [M, K, 7], "color": [M, K, 3]}`` (any subset),
+    added to the decoder heads' pre-activations, except those named in ``post_activation``
+    (``"opacity"``, ``"color"``), which are added to the activated values (tanh opacity,
+    sigmoid colour). ``active`` switches it off and on (a training schedule may start it
+    later).
     """
 
     active: bool = True
+    post_activation: tuple[str, ...] = ()
 
     def bake_heads(self, values: dict[str, Tensor]) -> list[BakeHead] | None:
         """Its heads for baking, given every anchor's decoded values; None: it declares none

@@ -19,7 +19,7 @@ SPEC = MethodSpec(
                 "progressive training",
     patches=("predict-gs", "predict-gs-high-rate", "sfp-only", "no-progressive", "no-anneal",
              "linear-anneal", "fusion-default", "sfp-zero-fusion", "sfp-lr-low", "sfp-contract",
-             "sfp-grid-auto", "residual-grow-parent"),
+             "sfp-grid-auto", "residual-grow-parent", "mgrd-post"),
     notes=(("feature_sections", "SFP grid + fusion MLP + residual"),
            ("grown_anchors", "grown in stage 1 / after"),
            ("training_curve", "progressive training renders downsampled views for the first 30% "

@@ -20,11 +20,13 @@ class PredictConfig:
     # options added after runs were archived, with the value that reproduces those runs: left
     # out of the config hash at that value (baseline.config.identity)
     LATER_KEYS: ClassVar[dict] = {"fusion_init": "zero", "grid_init": "random", "box": "extent",
-                                  "box_quantile": 0.01, "residual_grow": "zero"}
+                                  "box_quantile": 0.01, "residual_grow": "zero",
+                                  "corrections": "pre"}
     # options only the SFP reads: left out of the hash of a config without it
     COMPONENT_KEYS: ClassVar[dict] = {"fusion_init": ("feature_provider", "sfp"),
                                       "grid_init": ("feature_provider", "sfp"),
-                                      "residual_grow": ("feature_provider", "sfp")}
+                                      "residual_grow": ("feature_provider", "sfp"),
+                                      "corrections": ("refiner", "mgrd")}
 
     # Spatial Feature Pool (its own binary hash grid, HAC layout) + two-layer fusion MLP -> 50.
     fusion_hidden: int = 64            # choose: the paper gives two layers and the 50-dim output only
@@ -56,6 +58,14 @@ class PredictConfig:
     residual_grow: str = "zero"
     residual_from: int = 5000          # stage 2 starts here (stage 1: SFP only)
     mgrd_hidden: int = 64              # choose: hidden width of each MGRD head
+    # where MGRD's corrections enter (eq. 5 adds them to the coarse Gaussians' attributes):
+    # "pre" = before every activation (refined opacity tanh(raw + d), colour sigmoid(raw + d),
+    # scale and rotation from raw cov + d: a zero correction changes nothing and every refined
+    # attribute stays in range); "post" = opacity and colour after their activations (tanh(raw)
+    # + d, sigmoid(raw) + d: eq. 5 read on the attributes Scaffold-GS's MLPs output, whose
+    # opacity and colour heads end in Tanh and Sigmoid), scale and rotation on the cov head's
+    # raw output (it has no activation of its own)
+    corrections: str = "pre"
     # Progressive downsampling of the training view (equation 6)
     schedule: str = "cosine"           # cosine | linear | none (fixed d_s until stage 2)
     d_s: float = 0.7

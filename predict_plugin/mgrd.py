@@ -4,12 +4,16 @@ Two heads, each a two-layer MLP with ReLU, input f_r + view direction (3) + dist
 shape head -> K x 7 (delta scale 3, delta rotation 4), appearance head -> K x 4 (delta
 opacity 1, delta colour 3).
 
-Where the corrections enter (the paper leaves it open): in the
-pre-activation space of the decoder heads, i.e. refined opacity = tanh(raw_o + d_o), colour =
-sigmoid(raw_c + d_c), scale = s_anchor * sigmoid(raw_s + d_s), rotation = normalize(raw_r + d_r).
-This keeps every refined attribute in its valid range with no clamping, and makes a zero
-correction leave the predicted Gaussians exactly unchanged. The heads' last layers start at zero,
-so switching the residual branch on (stage 2) does not disturb the prediction learned in stage 1.
+Where the corrections enter (``predict.corrections``; eq. 5 adds them to the coarse Gaussians'
+attributes): "pre" (default) in the pre-activation space of the decoder heads, i.e. refined
+opacity = tanh(raw_o + d_o), colour = sigmoid(raw_c + d_c), scale = s_anchor * sigmoid(raw_s +
+d_s), rotation = normalize(raw_r + d_r), which keeps every refined attribute in its valid range
+with no clamping; "post" adds opacity and colour corrections to the activated values, tanh(raw_o)
++ d_o and sigmoid(raw_c) + d_c (Scaffold-GS's opacity and colour MLPs end in their activations,
+so these are the attributes they output), and the shape corrections to the cov head's raw output
+as "pre" does. Either way a zero correction leaves the predicted Gaussians exactly unchanged. The
+heads' last layers start at zero, so switching the residual branch on (stage 2) does not disturb
+the prediction learned in stage 1.
 """
 from __future__ import annotations
 
@@ -35,6 +39,9 @@ class MGRD(Refiner):
             nn.init.zeros_(head[2].weight)
             nn.init.zeros_(head[2].bias)
         self.active = False        # stage 1: residual branch off (set by the predict_stages hooks)
+        if p.corrections not in ("pre", "post"):
+            raise ValueError(f"predict.corrections must be 'pre' or 'post', got '{p.corrections}'")
+        self.post_activation = ("opacity", "color") if p.corrections == "post" else ()
 
     def forward(self, idx, values, view_dir, dist):
         """values["residual"] [M,R], view_dir [M,3], dist [M,1] -> corrections:

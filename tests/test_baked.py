@@ -40,7 +40,7 @@ def _assert_same_gaussians(model, cam, tol=1e-4):
     flip = a.selection != b.selection
     if flip.any():
         with torch.no_grad():
-            raw_op = model.raw_heads(cam.center, idx)[2].reshape(-1)
+            raw_op = model.raw_heads(cam.center, idx).raw_op.reshape(-1)
         assert raw_op[flip].abs().max() < 1e-5, raw_op[flip]
         assert int(flip.sum()) <= max(1, len(a.means) // 1000)
     both = a.selection & b.selection

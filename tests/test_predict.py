@@ -107,6 +107,68 @@ def test_refined_gaussians_are_kept_before_they_are_activated():
         assert torch.allclose(getattr(got, k), v, rtol=1e-6, atol=1e-7), k
 
 
+def test_post_activation_corrections_add_to_the_attributes():
+    """predict.corrections = "post": opacity = tanh(raw) + d_o and colour = sigmoid(raw) + d_c
+    (eq. 5 on the coarse heads' outputs), cov corrections before its activations; a zero
+    correction changes nothing; decode() keeps the same Gaussians as activating all candidates
+    first; such a model is not baked."""
+    from baseline.scaffold.baked import BakedDecoder
+    from baseline.scaffold.model import decode_all_then_select, view_inputs
+
+    torch.manual_seed(2)
+    cfg = _pgs_cfg("model.voxel_size=0.2", "predict.corrections=post")
+    model = _pgs_model(cfg)
+    assert model.refiner.post_activation == ("opacity", "color")
+    idx = torch.arange(0, model.n_anchors, 2)
+    cam = torch.tensor([0.3, 0.1, -4.0])
+    with torch.no_grad():
+        model.per_anchor["residual"].normal_()
+        model.per_anchor["mask"].normal_(std=4.0)
+    model.refiner.active = False
+    g0 = model.decode(cam, idx)
+    model.refiner.active = True          # zero last layers: nothing changes
+    g1 = model.decode(cam, idx)
+    for a in ("means", "quats", "scales", "opacities", "colors"):
+        assert torch.equal(getattr(g0, a), getattr(g1, a)), a
+    with torch.no_grad():
+        for head in (model.refiner.shape_head, model.refiner.appearance_head):
+            head[2].weight.normal_(std=0.5)
+        h = model.raw_heads(cam, idx)
+        model.refiner.active = False
+        h0 = model.raw_heads(cam, idx)
+        model.refiner.active = True
+        view_dir, dist = view_inputs(model.xyz[idx], cam)
+        d = model.refiner(idx, model.coded_values(idx), view_dir, dist)
+    assert torch.equal(h.raw_op, h0.raw_op) and torch.equal(h.raw_col, h0.raw_col)
+    assert torch.allclose(h.opacity(), torch.tanh(h0.raw_op) + d["opacity"])
+    every = torch.arange(h.raw_col.numel() // 3)
+    assert torch.allclose(h.colors(every), torch.sigmoid(h0.raw_col).reshape(-1, 3)
+                          + d["color"].reshape(-1, 3))
+    assert torch.allclose(h.raw_cov, h0.raw_cov + d["cov"])
+    assert (h.opacity() > 1).any() or (h.colors(every) > 1).any() or (h.colors(every) < 0).any()
+    got = model.decode(cam, idx)
+    want = decode_all_then_select(model, cam, idx)
+    assert 0 < len(want["means"]) < len(idx) * model.n_offsets
+    for k, v in want.items():
+        assert torch.allclose(getattr(got, k), v, rtol=1e-6, atol=1e-7), k
+    model.fixed_values = model.coded_values(torch.arange(model.n_anchors))
+    assert BakedDecoder.from_model(model) is None
+    pre = _pgs_model(_pgs_cfg("model.voxel_size=0.2"))
+    assert pre.refiner.post_activation == ()
+    with pytest.raises(ValueError, match="predict.corrections"):
+        _pgs_model(_pgs_cfg("model.voxel_size=0.2", "predict.corrections=after"))
+
+
+def test_corrections_option_keeps_the_hash_of_configs_without_it():
+    from baseline.config import config_hash
+
+    base = _pgs_cfg()
+    assert config_hash(base) == config_hash(_pgs_cfg("predict.corrections=pre"))
+    assert config_hash(base) != config_hash(_pgs_cfg("predict.corrections=post"))
+    assert config_hash(build_config(["predict-gs", "mgrd-post"], [])) == config_hash(
+        _pgs_cfg("predict.corrections=post"))
+
+
 def test_stage_switch_and_resolution_hook():
     from predict_plugin.hooks import PredictStages
 

@@ -117,18 +117,17 @@ def census(model, scene, cameras, *, coded=None, cfg=None, backend: str = "auto"
         for cam in cameras:
             idx, values, xyz = _view_anchors(model, cam, coded)
             gt = to_uint8(scene.image(cam))
-            _, _, raw_op, _, _ = model.raw_heads(cam.center, idx, values, xyz)
             on = model.gaussian_mask(idx) > 0                               # [M,K]
-            kept = (torch.tanh(raw_op) > 0) & on
+            kept = (model.raw_heads(cam.center, idx, values, xyz).opacity() > 0) & on
             if has_refiner:
                 refiner.active = False
-                _, _, raw0, _, _ = model.raw_heads(cam.center, idx, values, xyz)
+                op0 = model.raw_heads(cam.center, idx, values, xyz).opacity()
                 g0 = model.decode(cam.center, idx, values, xyz=xyz)
                 out0 = rasterize(g0.means, g0.quats, g0.scales, g0.opacities, g0.colors, cam,
                                  background=bg, backend=backend)
                 coarse_p.append(psnr(to_uint8(out0.image), gt))
                 refiner.active = True
-                kept0 = (torch.tanh(raw0) > 0) & on
+                kept0 = (op0 > 0) & on
             else:
                 kept0 = kept
             n_on, n_kept = int(on.sum()), int(kept.sum())

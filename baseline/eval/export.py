@@ -228,9 +228,10 @@ def union_gaussians(model, cameras, *, coded=None, sh_degree: int = 3, chunk: in
                 vis = prefilter_anchors(xyz, scal_all[sl][:, :3], cam).nonzero()[:, 0]
                 if len(vis) == 0:
                     continue
-                _, _, raw_op, raw_cov, raw_col = model.raw_heads(
+                h = model.raw_heads(
                     cam.center, idx[vis], {k: v[vis] for k, v in vals.items()}, xyz[vis])
-                op = (torch.tanh(raw_op) * model.gaussian_mask(idx[vis])).reshape(-1).double()
+                raw_cov = h.raw_cov
+                op = (h.opacity() * model.gaussian_mask(idx[vis])).reshape(-1).double()
                 cand = (vis[:, None] * K + torch.arange(K)[None, :]).reshape(-1)
                 n_vis[cand] += 1
                 w = op.clamp_min(0.0)
@@ -253,7 +254,7 @@ def union_gaussians(model, cameras, *, coded=None, sh_degree: int = 3, chunk: in
                 w_sum[c] += wk
                 d = torch.nn.functional.normalize(means[c] - cam.center.double()[None, :], dim=-1)
                 b = sh_basis(d, sh_degree)
-                col = torch.sigmoid(raw_col.reshape(-1, 3)[sel].double())
+                col = h.colors(sel, torch.float64)
                 A[c] += wk[:, None, None] * b[:, :, None] * b[:, None, :]
                 R[c] += wk[:, None, None] * b[:, :, None] * (col - 0.5)[:, None, :]
             keep = (n_drawn > 0).nonzero()[:, 0]

@@ -88,7 +88,8 @@ class BakedDecoder:
     @torch.no_grad()
     def from_model(cls, model) -> Optional["BakedDecoder"]:
         """Bake ``model`` (it must hold decoded values: ``model.fixed_values``). None when a
-        refiner does not declare its heads (``bake_heads``): such a model renders unbaked."""
+        refiner does not declare its heads (``bake_heads``) or adds corrections after the
+        activations (``post_activation``): such a model renders unbaked."""
         if model.fixed_values is None:
             raise ValueError("only a decoded model (fixed values) can be baked")
         N, K = model.n_anchors, model.n_offsets
@@ -100,8 +101,10 @@ class BakedDecoder:
         heads = model.decoder.bake_heads(feat)
         ref = model.refiner
         if ref is not None and ref.active:
-            # a refiner outside the Refiner contract declares no heads either
-            ref_heads = ref.bake_heads(values) if isinstance(ref, Refiner) else None
+            # a refiner outside the Refiner contract declares no heads either; one that adds
+            # corrections after the activations cannot share the pre-activation second layers
+            ref_heads = (ref.bake_heads(values)
+                         if isinstance(ref, Refiner) and not ref.post_activation else None)
             if ref_heads is None:               # a refiner that declares no heads
                 return None
             heads = heads + list(ref_heads)

@@ -33,15 +33,18 @@ class Gaussians:
 
 
 def kept_gaussians(*, means, cov, raw_color, opacities, scales_base, anchor_index, selection,
-                   opacity_all, idx, n_anchors, visible=None) -> Gaussians:
+                   opacity_all, idx, n_anchors, visible=None, color_add=None) -> Gaussians:
     """The activation tail shared by :meth:`AnchorModel.decode` and baked decoding: kept
     Gaussians' pre-activation cov [G,7] and color [G,3] -> scales (``scales_base`` [G,3] x
-    sigmoid), normalized quaternions, sigmoid colours; ``visible`` [N] built from ``idx`` when
-    not given."""
+    sigmoid), normalized quaternions, sigmoid colours (+ ``color_add`` [G,3], a refiner's
+    corrections after the activation); ``visible`` [N] built from ``idx`` when not given."""
     if visible is None:
         visible = torch.zeros(n_anchors, dtype=torch.bool, device=idx.device)
         visible[idx] = True
+    colors = torch.sigmoid(raw_color)
+    if color_add is not None:
+        colors = colors + color_add
     return Gaussians(means=means, quats=F.normalize(cov[:, 3:7], dim=-1),
                      scales=scales_base * torch.sigmoid(cov[:, :3]), opacities=opacities,
-                     colors=torch.sigmoid(raw_color), anchor_index=anchor_index,
+                     colors=colors, anchor_index=anchor_index,
                      selection=selection, opacity_all=opacity_all, visible=visible)

@@ -9,7 +9,7 @@ that initialises the rows of grown anchors.
 from __future__ import annotations
 
 import math
-from typing import Callable, Optional
+from typing import Callable, NamedTuple, Optional
 
 import torch
 import torch.nn as nn
@@ -68,6 +68,42 @@ class DecoderMLPs(nn.Module):
         return [BakeHead(feat, self.mlp_opacity, d, {"opacity": (0, 1)}),
                 BakeHead(feat, self.mlp_cov, d, {"cov": (0, 7)}),
                 BakeHead(feat, self.mlp_color, d, {"color": (0, 3)})]
+
+
+class Heads(NamedTuple):
+    """What :meth:`AnchorModel.raw_heads` returns for ``M`` visible anchors.
+
+    ``raw_op`` [M,K], ``raw_cov`` [M,K,7], ``raw_col`` [M,K,3]: the heads' pre-activations, a
+    refiner's pre-activation corrections included; ``post``: its corrections added after the
+    activations (``{"opacity": [M,K], "color": [M,K,3]}``, any subset; empty without such a
+    refiner). :meth:`opacity` and :meth:`colors` apply both.
+    """
+
+    values: dict
+    xyz: torch.Tensor
+    raw_op: torch.Tensor
+    raw_cov: torch.Tensor
+    raw_col: torch.Tensor
+    post: dict
+
+    def opacity(self) -> torch.Tensor:
+        """[M,K] tanh opacity of every candidate (before the masks)."""
+        op = torch.tanh(self.raw_op)
+        return op + self.post["opacity"] if "opacity" in self.post else op
+
+    def color_add(self, keep: torch.Tensor) -> Optional[torch.Tensor]:
+        """[G,3] colour corrections after the sigmoid of the candidates ``keep`` [G] (indices
+        into the M*K candidates), or None."""
+        c = self.post.get("color")
+        return None if c is None else c.reshape(-1, 3)[keep]
+
+    def colors(self, keep: torch.Tensor, dtype: Optional[torch.dtype] = None) -> torch.Tensor:
+        """[G,3] colours of the candidates ``keep`` [G], activated in ``dtype`` (default: as
+        computed)."""
+        raw = self.raw_col.reshape(-1, 3)[keep]
+        col = torch.sigmoid(raw if dtype is None else raw.to(dtype))
+        add = self.color_add(keep)
+        return col if add is None else col + (add if dtype is None else add.to(dtype))
 
 
 # the provider's own random stream: the run's seed + this (see AnchorModel.__init__)
@@ -200,11 +236,9 @@ class AnchorModel(nn.Module):
     # ------------------------------------------------------------------------- decoding
     def raw_heads(self, cam_center: torch.Tensor, idx: torch.Tensor,
                   values: Optional[dict[str, torch.Tensor]] = None,
-                  xyz: Optional[torch.Tensor] = None):
-        """Pre-activation head outputs of anchors ``idx`` [M] (refiner corrections included).
-
-        Returns ``(values, xyz [M,3], raw_opacity [M,K], raw_cov [M,K,7], raw_color [M,K,3])``.
-        """
+                  xyz: Optional[torch.Tensor] = None) -> Heads:
+        """Pre-activation head outputs of anchors ``idx`` [M] (refiner corrections included:
+        those the refiner adds after the activations in :attr:`Heads.post`)."""
         if values is None:
             values = self.coded_values(idx)
         if xyz is None:
@@ -215,16 +249,25 @@ class AnchorModel(nn.Module):
         view_dir, dist = view_inputs(xyz, cam_center)
         with stage("decoder MLPs"):
             raw_op, raw_cov, raw_col = self.decoder(feat, view_dir, dist)
+        post: dict[str, torch.Tensor] = {}
         if self.refiner is not None and self.refiner.active:
             with stage("refiner"):
                 d = self.refiner(idx, values, view_dir, dist)
-                # Corrections enter before the activations (documented contract of refiners).
-                raw_op = raw_op + d["opacity"]
-                raw_cov = raw_cov + d["cov"]
-                raw_col = raw_col + d["color"]
+                # Corrections enter before the activations, except those the refiner adds to
+                # the activated values (contracts.Refiner.post_activation).
+                after = self.refiner.post_activation
+                for name in ("opacity", "color"):
+                    if name in after and name in d:
+                        post[name] = d.pop(name)
+                if "opacity" in d:
+                    raw_op = raw_op + d["opacity"]
+                if "cov" in d:
+                    raw_cov = raw_cov + d["cov"]
+                if "color" in d:
+                    raw_col = raw_col + d["color"]
         for t in (raw_op, raw_cov, raw_col):
             backward_mark(t, "activations bwd")
-        return values, xyz, raw_op, raw_cov, raw_col
+        return Heads(values, xyz, raw_op, raw_cov, raw_col, post)
 
     def decode(self, cam_center: torch.Tensor, idx: torch.Tensor,
                values: Optional[dict[str, torch.Tensor]] = None,
@@ -238,13 +281,14 @@ class AnchorModel(nn.Module):
             opacity_floor: keep Gaussians with (masked) opacity above this (Scaffold-GS: 0);
                 the census's threshold sweep raises it.
         """
-        values, xyz, raw_op, raw_cov, raw_col = self.raw_heads(cam_center, idx, values, xyz)
+        h = self.raw_heads(cam_center, idx, values, xyz)
+        values, xyz, raw_cov = h.values, h.xyz, h.raw_cov
         M, K = len(idx), self.n_offsets
         gmask = self.gaussian_mask(idx)                             # [M,K]
         after = self.mask_after_selection and torch.is_grad_enabled()
         # HAC: the mask multiplies the opacity before the selection (a masked Gaussian is not
         # drawn); HAC++ (training): it multiplies opacity and scale of the selected ones
-        opacity = torch.tanh(raw_op) if after else torch.tanh(raw_op) * gmask      # [M,K]
+        opacity = h.opacity() if after else h.opacity() * gmask    # [M,K]
         sel = (opacity > opacity_floor).reshape(-1)                 # [M*K]
         # The kept Gaussians are chosen first and only their attributes are activated: the
         # same per-element arithmetic as activating all M*K candidates and selecting after,
@@ -259,7 +303,8 @@ class AnchorModel(nn.Module):
             gk = gmask.reshape(-1)[keep]
             opacities, scales_base = opacities * gk, scales_base * gk[:, None]
         return kept_gaussians(means=means, cov=raw_cov.reshape(M * K, 7)[keep],
-                              raw_color=raw_col.reshape(M * K, 3)[keep],
+                              raw_color=h.raw_col.reshape(M * K, 3)[keep],
+                              color_add=h.color_add(keep),
                               opacities=opacities, scales_base=scales_base,
                               anchor_index=idx[row], selection=sel, opacity_all=opacity,
                               idx=idx, n_anchors=self.n_anchors, visible=visible)
@@ -309,16 +354,17 @@ def decode_all_then_select(model: AnchorModel, cam_center: torch.Tensor, idx: to
     ``decode`` keeps first and activates only the kept ones; tests and ``pgs bench frame``
     compare the two.
     """
-    values, xyz, raw_op, raw_cov, raw_col = model.raw_heads(cam_center, idx, values, xyz)
+    h = model.raw_heads(cam_center, idx, values, xyz)
+    values, xyz, raw_cov = h.values, h.xyz, h.raw_cov
     M, K = len(idx), model.n_offsets
-    opacity = torch.tanh(raw_op) * model.gaussian_mask(idx)
+    opacity = h.opacity() * model.gaussian_mask(idx)
     sel = (opacity > 0).reshape(-1)
     scaling = values["scaling"]
     offsets = values["offsets"].view(M, K, 3) * scaling[:, None, :3]
     means = (xyz[:, None, :] + offsets).reshape(-1, 3)
     scales = (scaling[:, None, 3:] * torch.sigmoid(raw_cov[..., :3])).reshape(-1, 3)
     quats = F.normalize(raw_cov[..., 3:7].reshape(-1, 4), dim=-1)
-    colors = torch.sigmoid(raw_col).reshape(-1, 3)
+    colors = h.colors(torch.arange(M * K, device=idx.device))
     anchor_index = idx[:, None].expand(M, K).reshape(-1)
     return dict(means=means[sel], quats=quats[sel], scales=scales[sel],
                 opacities=opacity.reshape(-1)[sel], colors=colors[sel],

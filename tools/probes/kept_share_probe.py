@@ -32,9 +32,9 @@ def kept(model, cams) -> dict:
     with torch.no_grad():
         for cam in cams:
             idx = visible_anchors(model, cam)
-            _, _, raw, _, _ = model.raw_heads(cam.center, idx)
+            op = model.raw_heads(cam.center, idx).opacity()
             on = model.gaussian_mask(idx) > 0
-            k = (torch.tanh(raw) > 0) & on
+            k = (op > 0) & on
             on_t += int(on.sum())
             kept_t += int(k.sum())
             per += torch.bincount(k.sum(1), minlength=model.n_offsets + 1).float()
