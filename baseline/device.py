@@ -119,3 +119,32 @@ def keep_freed_memory() -> bool:
           and mallopt(M_TOP_PAD, 256 << 20) == 1)
     _ALLOCATOR_TUNED = ok
     return ok
+
+
+def code_version() -> str:
+    """The code a run's time was taken with, for its record: the git commit of the checkout
+    the ``baseline`` package is imported from (12 hex digits, ``+modified`` when its tracked
+    files differ from that commit), else ``pgs VERSION`` (an installed wheel).
+
+    Two runs' times compare only when this is the same: a same-numbers speed-up changes no
+    result, so only this tells which code a training time measures.
+    """
+    import subprocess
+    from pathlib import Path
+
+    import baseline
+
+    root = Path(baseline.__file__).resolve().parent.parent
+    try:
+        def git(*args):
+            return subprocess.run(["git", "-C", str(root), *args], capture_output=True,
+                                  text=True, timeout=20, check=True).stdout.strip()
+
+        if Path(git("rev-parse", "--show-toplevel")).resolve() != root:
+            raise ValueError("the package is not at the top of a checkout")
+        commit = git("rev-parse", "--short=12", "HEAD")
+        modified = git("status", "--porcelain", "--untracked-files=no")
+        return commit + ("+modified" if modified else "")
+    except (OSError, ValueError, subprocess.SubprocessError):
+        return f"pgs {baseline.__version__}"
+

@@ -283,6 +283,11 @@ def _finish_run(trainer, scene, scene_path, out: Path, cfg: Config, evaluate_aft
         # not keep it (None): [first iteration, machine] per stretch
         **({"machines_by_iteration": trainer.machine_segments}
            if len(trainer.machine_segments) > 1 else {}),
+        "code": trainer.code,
+        # present when the run was resumed by other code (or from a checkpoint that did not
+        # keep it): [first iteration, code] per stretch
+        **({"codes_by_iteration": trainer.code_segments}
+           if len(trainer.code_segments) > 1 else {}),
         "backend": resolve_backend(cfg.train.rasterizer, trainer.model.xyz),
         "voxel_size": trainer.voxel_size,
         "anchors": trainer.model.n_anchors,

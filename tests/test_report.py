@@ -616,6 +616,28 @@ def test_training_times_of_two_machines_make_no_ratio():
     assert f"- (Predict-GS {LAMBDAS[1]:g}, " in machine
 
 
+def test_training_times_of_two_codes_make_no_ratio():
+    """Two runs' training times compare only when their records name the same code (a
+    same-numbers speed-up changes no result, only the time): a record from before codes were
+    kept pairs only with another such record; the protocol lists each method's code."""
+    from baseline.eval.report import protocol_lines, train_time_pairs
+    res = stored_results()
+    by = {(r["method"], r["lmbda"]): r for r in res["runs"]}
+    for lm, t in zip(LAMBDAS, (1000.0, 2000.0, 4000.0)):
+        by[("baseline", lm)].update(train_time_s=t, code="0123456789ab")
+        by[("predict-gs", lm)].update(train_time_s=1.5 * t, code="0123456789ab")
+    assert len(train_time_pairs(res, "predict-gs", "baseline")[0]) == 3
+    by[("predict-gs", LAMBDAS[0])]["code"] = "ba9876543210+modified"
+    del by[("predict-gs", LAMBDAS[1])]["code"]
+    pairs, left = train_time_pairs(res, "predict-gs", "baseline")
+    assert [r["lmbda"] for r, _ in pairs] == [LAMBDAS[2]]
+    assert sorted(why for _, why in left) == [
+        "trained by code ba9876543210+modified, the baseline run by 0123456789ab",
+        "trained by code unrecorded, the baseline run by 0123456789ab"]
+    code = dict(protocol_lines(res))["code"]
+    assert "ba9876543210+modified (Predict-GS" in code and "0123456789ab (HAC" in code
+
+
 def test_pgs_train_names_a_stalled_training_time(capsys):
     from baseline.cli import _print_results
     run = {"iterations": 10, "train_time_s": 100.0, "s_per_it": 10.0, "threads": 1, "anchors": 5}

@@ -96,6 +96,42 @@ def test_a_resume_at_another_thread_count_keeps_both_counts(scene_dir, tmp_path)
     assert _threads_shown({"threads": 1}) == "1"
 
 
+def test_a_resume_by_other_code_keeps_both_codes(scene_dir, tmp_path, monkeypatch):
+    """A run records the code it trained by (this checkout's commit, or the package's version
+    outside a checkout); one resumed by other code keeps which iterations ran by which, and the
+    report leaves its time out of every ratio."""
+    import re
+
+    import baseline.train.trainer as tr
+    from baseline.device import code_version
+    from baseline.eval.report import untimed
+    from baseline.run import _finish_run
+
+    here = code_version()
+    assert re.fullmatch(r"[0-9a-f]{12}(\+modified)?|pgs \S+", here), here
+    scene = load_scene(scene_dir)
+    a = Trainer(_cfg(20, "train.checkpoint_every=0"), scene, tmp_path / "t", progress=False)
+    a.train(until=10)
+    assert a.code == here and a.code_segments == [[0, here]]
+    monkeypatch.setattr(tr, "code_version", lambda: "feedfacecafe")
+    b = Trainer(_cfg(20, "train.checkpoint_every=0"), scene, tmp_path / "t", progress=False)
+    b.load_checkpoint(tmp_path / "t" / "checkpoint.pt")
+    b.train()
+    want = [[0, here], [10, "feedfacecafe"]]
+    assert b.code_segments == want
+    res = _finish_run(b, scene, scene_dir, tmp_path / "t", b.cfg, evaluate_after=False)
+    assert res["code"] == "feedfacecafe" and res["codes_by_iteration"] == want
+    assert untimed(dict(res, stall_s=0.0)) == (
+        "resumed by other code or from a checkpoint that did not record it: "
+        f"{here} from iteration 0, then feedfacecafe from iteration 10")
+    old = torch.load(tmp_path / "t" / "checkpoint.pt", weights_only=False)
+    del old["code_segments"]                       # written before codes were kept
+    torch.save(old, tmp_path / "old.pt")
+    d = Trainer(_cfg(20), scene, tmp_path / "d", progress=False)
+    d.load_checkpoint(tmp_path / "old.pt")
+    assert d.code_segments == [[0, None], [20, "feedfacecafe"]]
+
+
 def test_a_resume_on_another_machine_keeps_both_machines(scene_dir, tmp_path, monkeypatch):
     """A run resumed on another machine keeps which iterations ran on which (its training time
     then sums two machines' speeds): through later checkpoints and into its results, where the

@@ -53,11 +53,12 @@ def trained(spec: RunSpec) -> Optional[dict]:
 
 
 def training_history(res: dict) -> dict:
-    """The machine a run trained on, a resumed run's thread counts and machines by stretch of
-    iterations when it had several, and its stall time (of the training time, the seconds it
-    ran on no core), each where it was kept."""
+    """The machine and code a run trained on, a resumed run's thread counts, machines and
+    codes by stretch of iterations when it had several, and its stall time (of the training
+    time, the seconds it ran on no core), each where it was kept."""
     return {k: res[k] for k in ("machine", "threads_by_iteration", "machines_by_iteration",
-                                "stall_s", "stall_from") if res.get(k) is not None}
+                                "code", "codes_by_iteration", "stall_s", "stall_from")
+            if res.get(k) is not None}
 
 
 def records_only(spec: RunSpec) -> bool:

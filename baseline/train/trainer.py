@@ -28,7 +28,8 @@ from tqdm import tqdm
 
 from baseline import registry
 from baseline.config import Config, to_toml
-from baseline.device import keep_freed_memory, machine_name, make_generator, resolve_device
+from baseline.device import (code_version, keep_freed_memory, machine_name, make_generator,
+                             resolve_device)
 from baseline.fileio import (
     atomic_path,
     open_checked,
@@ -174,6 +175,10 @@ class Trainer:
         # (or from a checkpoint that did not keep it) has a time that measures no one machine
         self.machine = machine_name(self.device)
         self.machine_segments: list[list] = [[0, self.machine]]
+        # [first iteration, code] per stretch, likewise: the toolkit's commit (a run resumed by
+        # other code, even code that computes the same numbers, has a time of neither)
+        self.code = code_version()
+        self.code_segments: list[list] = [[0, self.code]]
         torch.manual_seed(cfg.train.seed)
         np.random.seed(cfg.train.seed)
         random.seed(cfg.train.seed)
@@ -454,6 +459,7 @@ class Trainer:
             "loss_ema": self._ema_loss,
             "thread_segments": self.thread_segments,
             "machine_segments": self.machine_segments,
+            "code_segments": self.code_segments,
             "shapes": {k: tuple(v.shape) for k, v in self.model.per_anchor.items()},
             "model": self.model.state_dict(),
             "entropy": self.entropy.state_dict(),
@@ -533,6 +539,7 @@ class Trainer:
                                                 self.threads)
         self.machine_segments = _extend_segments(s.get("machine_segments"), s["iteration"],
                                                  self.machine)
+        self.code_segments = _extend_segments(s.get("code_segments"), s["iteration"], self.code)
         self.train_time = s["train_time"]
         if self.device.type != "cpu":
             self.stall_time = None

@@ -17,7 +17,7 @@ from baseline.eval.report.cells import (_change, _count, _f, _is_base, _lam, _ma
 from baseline.eval.report.bd import (bd_against, bd_pairs, BD_THIN_OVERLAP, compute_bd,
                                      point_readings)
 from baseline.eval.report.curves import curve_cells, span_headers
-from baseline.eval.report.timing import _machines_shown, _threads_shown, untimed
+from baseline.eval.report.timing import _codes_shown, _machines_shown, _threads_shown, untimed
 
 
 def _lpips_note(results: dict) -> str:
@@ -527,6 +527,7 @@ def protocol_lines(results: dict) -> list[tuple[str, str]]:
         ("iterations", per_method("iterations")),
         ("threads", per_method("threads", _threads_shown)),
         ("machine", per_method("machine", _machines_shown)),
+        ("code", per_method("code", _codes_shown)),
         ("device", per_method("device")),
         ("backend", per_method("backend")),
         ("evaluated on", per_method("split")),

@@ -49,19 +49,23 @@ def _stall_words(r: dict) -> str:
 def untimed(r: dict) -> Optional[str]:
     """Why a run's training time is no measurement of its cost, or None where it stands:
     stalled beyond STALL_LIMIT, marked in its record (``pgs compare --untimed``) for what the
-    record cannot show, or resumed on another machine (or from a checkpoint that did not keep
-    its machine): its time then sums stretches of different machines. Every reason that
-    holds, joined."""
+    record cannot show, or resumed on another machine or by other code (or from a checkpoint
+    that did not keep them): its time then sums stretches of different machines or codes.
+    Every reason that holds, joined."""
     why = [_stall_words(r) if stalled(r) else None, r.get("untimed") or None,
            "resumed on another machine or from one not recorded: " + _machines_shown(r)
-           if r.get("machines_by_iteration") else None]
+           if r.get("machines_by_iteration") else None,
+           "resumed by other code or from a checkpoint that did not record it: " + _codes_shown(r)
+           if r.get("codes_by_iteration") else None]
     return "; ".join(w for w in why if w) or None
 
 
 def train_time_pairs(results: dict, method: str, base: str) -> tuple[list, list]:
     """The (method run, baseline run) pairs whose training times compare: the same lambda and
     seed, each trained at one thread count throughout, the same count for both, neither
-    untimed (stalled beyond STALL_LIMIT of its time and STALL_FLOOR_S, or marked); and the
+    untimed (stalled beyond STALL_LIMIT of its time and STALL_FLOOR_S, or marked), on the same
+    machine and by the same code where both records name them (a record that names neither
+    code, from before codes were kept, pairs only with another such record); and the
     method's runs whose
     time does not compare with the baseline's run at their rate point, each as (run, why). A
     rate point the baseline has no run at is neither (nothing to compare with)."""
@@ -86,6 +90,9 @@ def train_time_pairs(results: dict, method: str, base: str) -> tuple[list, list]
             left.append((r, f"the baseline run: {why}"))
         elif r.get("machine") and b.get("machine") and r["machine"] != b["machine"]:
             left.append((r, f"trained on {r['machine']}, the baseline run on {b['machine']}"))
+        elif r.get("code") != b.get("code"):
+            left.append((r, f"trained by code {r.get('code') or 'unrecorded'}, the baseline run "
+                            f"by {b.get('code') or 'unrecorded'}"))
         else:
             pairs.append((r, b))
     return pairs, left
@@ -142,6 +149,12 @@ def _machines_shown(r: dict) -> str:
     """A run's machine (``-`` in records from before machines were kept); a run resumed on
     another one names each from its first iteration, as _threads_shown."""
     return _stretches_shown(r, "machine", "machines_by_iteration")
+
+
+def _codes_shown(r: dict) -> str:
+    """The code a run trained by (``-`` in records from before codes were kept); a run
+    resumed by other code names each from its first iteration, as _threads_shown."""
+    return _stretches_shown(r, "code", "codes_by_iteration")
 
 
 def _stretches_shown(r: dict, key: str, by_iteration: str) -> str:
