@@ -5,6 +5,9 @@ from __future__ import annotations
 
 import csv
 import os
+import subprocess
+import sys
+import textwrap
 
 import pytest
 
@@ -138,3 +141,28 @@ def test_a_stalled_training_time_leaves_its_rows_train_mean_out():
     assert "train (s) '-': a run of that row stalled over 5%" in format_benchmark(res)
     rows["hacpp"]["train_s"] = 1.0
     assert "stalled" not in format_benchmark(res)
+
+
+def test_a_pool_worker_compiles_kernels_with_its_own_thread_count():
+    """A pool worker imports numba (unpickling its initializer) before it is given its thread
+    count; compiling a kernel afterwards, as a fresh install without numba's disk cache does,
+    must not fail on the changed NUMBA_NUM_THREADS."""
+    code = textwrap.dedent("""
+        import os
+        import numba
+        from baseline.experiment.executors import _worker_init
+        _worker_init(sorted(os.sched_getaffinity(0)), 1)
+        numba.get_num_threads()                       # starts the pool
+
+        @numba.njit(cache=False)
+        def f(x):
+            return x + 1
+
+        assert f(1) == 2                              # compiling rereads the environment
+        print(numba.config.NUMBA_NUM_THREADS)
+    """)
+    env = dict(os.environ, NUMBA_NUM_THREADS="2")     # the pool size read at import
+    r = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
+                       timeout=300)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert r.stdout.split()[-1] == "1"

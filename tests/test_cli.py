@@ -501,3 +501,11 @@ def test_demo_contenders_come_from_the_method_specs(tmp_path, monkeypatch, capsy
     assert main(["demo", "--out", str(out)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--vs" in err[0] and not out.exists()
+
+
+def test_the_demo_report_names_the_iterations_it_trained():
+    from baseline.cli.experiments import demo_scope
+
+    assert "(1k iterations, one seed)" in demo_scope(1000)
+    assert "(30 iterations, one seed)" in demo_scope(30)
+    assert "(1,500 iterations, one seed)" in demo_scope(1500)

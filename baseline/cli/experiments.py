@@ -136,9 +136,14 @@ def cmd_warmup(args) -> int:
 
 
 DEMO_LAMBDAS = (0.004, 0.002, 0.001)
-DEMO_SCOPE = ("These figures are the embedded synthetic scene's (1k iterations, one seed): a "
-              "check that the pipelines run and a picture of the comparison, not a claim about "
-              "real scenes (docs/RESULTS.md has those).")
+
+
+def demo_scope(iterations: int) -> str:
+    """The report's closing line on what the demo's figures are (and are not)."""
+    n = f"{iterations // 1000}k" if iterations % 1000 == 0 else f"{iterations:,}"
+    return (f"These figures are the embedded synthetic scene's ({n} iterations, one seed): a "
+            "check that the pipelines run and a picture of the comparison, not a claim about "
+            "real scenes (docs/RESULTS.md has those).")
 
 
 def demo_contenders() -> list[str]:
@@ -185,11 +190,12 @@ def cmd_demo(args) -> int:
     common = ["demo"] + args.patch
     methods = parse_methods(vs)
     ref = None if args.reference == "none" else args.reference
+    specs = plan_runs(out, methods, lambdas, common, args.set)
     jobs = [Job(scene=str(scene.resolve()), out=str(out.resolve()), method=s.method.name,
                 method_patches=tuple(s.method.patches), lmbda=s.lmbda, seed=None,
                 common_patches=tuple(common), sets=tuple(args.set), label=s.label,
                 lpips_weights=lpips)
-            for s in plan_runs(out, methods, lambdas, common, args.set)]
+            for s in specs]
     jobs.sort(key=lambda j: j.method == "baseline")          # the longer trainings first
     if ref is not None:
         m = parse_reference(ref)
@@ -207,7 +213,8 @@ def cmd_demo(args) -> int:
             return 1
         run_compare(str(scene), out, vs=vs, lambdas=lambdas,
                     common_patches=common, sets=args.set, progress=False, plots=True,
-                    reference=ref, paired_fps=True, scope=DEMO_SCOPE, lpips_weights=lpips,
+                    reference=ref, paired_fps=True, lpips_weights=lpips,
+                    scope=demo_scope(specs[0].cfg.train.iterations),
                     done_before={r["run_dir"]: r["stages_run"] for r in res["done"]})
     except KeyboardInterrupt:
         print("\ninterrupted: run ./run.sh demo again to resume", file=sys.stderr)

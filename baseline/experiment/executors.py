@@ -106,8 +106,23 @@ def _maybe_fail_for_tests(job: Job) -> None:
 
 # ---------------------------------------------------------------------------- local
 def _worker_init(cores: list, threads: int) -> None:
+    """A pool worker's thread count and cores, set before its first job.
+
+    Unpickling this function already imported numba (through ``baseline``), which read its pool
+    size from the environment then. numba rereads the environment before every compilation and
+    refuses a pool size that changed once its threads run, so the new size is read in at once:
+    otherwise a worker that compiles a kernel (a fresh install, no disk cache yet) fails with
+    "Cannot set NUMBA_NUM_THREADS to a different value once the threads have been launched"."""
     os.environ["OMP_NUM_THREADS"] = str(threads)
-    os.environ["NUMBA_NUM_THREADS"] = str(threads)
+    if "numba" not in sys.modules:
+        os.environ["NUMBA_NUM_THREADS"] = str(threads)
+    else:
+        from numba.core import config as numba_config
+        from numba.np.ufunc import parallel
+
+        if not parallel._is_initialized:  # once its threads run, the pool keeps its size
+            os.environ["NUMBA_NUM_THREADS"] = str(threads)
+            numba_config.reload_config()
     try:
         os.sched_setaffinity(0, cores)
     except (AttributeError, OSError):
