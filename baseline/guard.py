@@ -156,11 +156,12 @@ def identity_difference(recorded: dict, now: dict) -> Optional[str]:
 
 def config_difference(old_cfg, new_cfg) -> list[str]:
     """``section.key: old -> new`` for every training setting that differs (where a run
-    executes, ``train.device``, is not a difference)."""
-    from baseline.config import EXECUTION_KEYS, to_dict
+    executes, ``train.device``, and how often it saves, ``train.checkpoint_every``, are not
+    differences)."""
+    from baseline.config import EXECUTION_KEYS, SAVING_KEYS, to_dict
 
     a, b = to_dict(old_cfg, drop_meta=True), to_dict(new_cfg, drop_meta=True)
-    for sec, key in EXECUTION_KEYS:
+    for sec, key in list(EXECUTION_KEYS) + list(SAVING_KEYS):
         a.get(sec, {}).pop(key, None)
         b.get(sec, {}).pop(key, None)
     out = []

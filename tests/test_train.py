@@ -349,3 +349,24 @@ def test_decoder_quant_sets_what_the_decoder_sees_in_training(scene_dir, tmp_pat
     assert {ph for ph, _ in on_grid} == {"noise", "adaptive"}
     for key, flags in on_grid.items():
         assert all(flags) if mode == "ste" else not any(flags), (key, flags)
+
+
+def test_saving_more_often_trains_the_same_run(scene_dir, tmp_path):
+    """``train.checkpoint_every`` says when a run saves its state, not what it trains: the same
+    folder hash, no config difference on resume, and the same parameters bit for bit."""
+    from baseline.config import config_hash
+    from baseline.guard import config_difference
+
+    often, never = _cfg(24, "train.checkpoint_every=1000"), _cfg(24, "train.checkpoint_every=0")
+    assert often.train.at(often.train.checkpoint_every) < 24   # it saves inside the run
+    assert config_hash(often) == config_hash(never) == config_hash(_cfg(24))
+    assert config_difference(often, never) == []
+    assert config_hash(_cfg(24, "train.log_every=7")) != config_hash(_cfg(24))  # others count
+    scene = load_scene(scene_dir)
+    states = []
+    for name, cfg in (("often", often), ("never", never)):
+        t = Trainer(cfg, scene, tmp_path / name, progress=False)
+        t.train()
+        states.append({k: v.detach().clone() for k, v in t.model.state_dict().items()})
+    assert states[0].keys() == states[1].keys()
+    assert all(torch.equal(states[0][k], states[1][k]) for k in states[0])

@@ -2,7 +2,7 @@
 and a run's identity (:mod:`.identity`)."""
 from baseline.codec.format import GRID_CODINGS, MASK_CODINGS, POSITION_CODINGS
 from baseline.config.identity import (COMPONENT_KEYS, EXECUTION_KEYS, LATER_KEYS,
-                                      TRAINING_SEMANTICS, TRAINING_SEMANTICS_NOTES,
+                                      SAVING_KEYS, TRAINING_SEMANTICS, TRAINING_SEMANTICS_NOTES,
                                       component_semantics, config_hash, semantics_label,
                                       semantics_note)
 from baseline.config.patches import (PATCH_DIR, PATCH_KINDS, PatchInfo, apply_overlay,
@@ -14,7 +14,7 @@ from baseline.config.schema import (CodecConfig, Config, ConfigError, DataConfig
                                     TrainConfig, default_config, to_dict, validate)
 
 __all__ = ["COMPONENT_KEYS", "EXECUTION_KEYS", "GRID_CODINGS", "LATER_KEYS", "MASK_CODINGS",
-           "PATCH_DIR", "PATCH_KINDS", "POSITION_CODINGS", "TRAINING_SEMANTICS",
+           "PATCH_DIR", "PATCH_KINDS", "POSITION_CODINGS", "SAVING_KEYS", "TRAINING_SEMANTICS",
            "TRAINING_SEMANTICS_NOTES", "CodecConfig", "Config", "ConfigError", "DataConfig",
            "DensifyConfig", "EntropyConfig", "GridConfig", "LRConfig", "ModelConfig", "PatchInfo",
            "TrainConfig", "apply_overlay", "build_config", "component_semantics", "config_hash",

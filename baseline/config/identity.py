@@ -46,6 +46,11 @@ def semantics_note(version) -> str:
 # them in their protocol).
 EXECUTION_KEYS = (("train", "device"), ("train", "tensorboard"))
 
+# How often a run saves its state: no training setting either (a checkpoint is written and the
+# step goes on unchanged), but runs were hashed with it at its default, so the hash reads that
+# default whatever the value is (a long run may save more often and keep its folder).
+SAVING_KEYS = {("train", "checkpoint_every"): 5000}
+
 
 # Options added after runs were finished and archived, with the default that reproduces those
 # runs: left out of the hash while at that default, so adding an option does not orphan every
@@ -125,6 +130,9 @@ def config_hash(cfg: Config, semantics: int = TRAINING_SEMANTICS) -> str:
             d["component_semantics"] = comps
     for sec, key in EXECUTION_KEYS:
         d[sec].pop(key, None)
+    for (sec, key), default in SAVING_KEYS.items():
+        if key in d.get(sec, {}):
+            d[sec][key] = default
     for (sec, key), (field, name) in _section_keys(cfg, "COMPONENT_KEYS", COMPONENT_KEYS).items():
         if getattr(cfg.model, field) != name and sec in d:
             d[sec].pop(key, None)
