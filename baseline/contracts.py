@@ -148,6 +148,12 @@ class FeatureProvider(_Module):
         None: nothing."""
         return None
 
+    def context_grid(self) -> Any:
+        """A positional feature grid of the provider's (a ``BinaryHashGrid`` queried at the
+        anchor positions) that a hash-grid entropy model may read as its context instead of
+        a grid of its own (``entropy.context = "provider"``); None: it has none."""
+        return None
+
 
 class Refiner(_Module):
     """Additive corrections of the decoded Gaussians (optional; baseline: ``none``).

@@ -356,8 +356,15 @@ def _decode_model(path, max_bytes, plan: dict) -> DecodedModel:
         raise BitstreamError(f"header field 'attrs' ({attrs}) does not match what the "
                              f"configured model codes ({[w[0] for w in want]})")
     used_xyz = xyz if facts.grid_coding == "used" else None
+    overrides = {}
+    if ent_cfg.get("context") == "provider":      # the context is the provider's grid
+        grid = model.provider.context_grid()
+        if grid is None:
+            raise BitstreamError("header field 'entropy.context': the entropy model reads the "
+                                 "feature provider's grid, and this file's provider has none")
+        overrides["grid"] = grid
     try:
-        entropy = build_entropy_model(ent_cfg)
+        entropy = build_entropy_model(ent_cfg, **overrides)
     except (ValueError, TypeError, KeyError) as e:
         raise BitstreamError(f"header field 'entropy' does not build a model: {e}") from None
     em = {k[3:]: v for k, v in sections.items() if k.startswith("em.")}

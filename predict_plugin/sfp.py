@@ -135,7 +135,7 @@ class SpatialFeaturePool(FeatureProvider):
 
     def predict(self, xyz: torch.Tensor) -> torch.Tensor:
         """[M,3] positions -> [M, 50] predicted features f_c."""
-        return self.fusion(self.grid(xyz))
+        return self.fusion(self.grid.shared_query(xyz))
 
     def decoder_features(self, idx, values, xyz):
         if self._cache is not None:
@@ -156,6 +156,11 @@ class SpatialFeaturePool(FeatureProvider):
         if self._cache is not None:
             self._cache = fn(self._cache)
         return self
+
+    def context_grid(self) -> BinaryHashGrid:
+        """Its grid, which HAC's entropy model may read as its context
+        (``entropy.context = "provider"``, patch ``sfp-context``)."""
+        return self.grid
 
     def rate_bits(self) -> torch.Tensor:
         """The SFP's hash bits, added to the rate loss (paper eq. 8: L_entropy includes the SFP)."""

@@ -490,3 +490,107 @@ def test_kept_share_probe_tool(small_scene, capsys):
     rows = [json.loads(x) for x in capsys.readouterr().out.splitlines()]
     assert [r["it"] for r in rows] == [0, 3]
     assert all(0 < r["kept_share"] <= 1 and r["gaussians"] > 0 for r in rows)
+
+
+def test_a_grid_pass_is_shared_only_for_the_same_positions_and_tables():
+    """``BinaryHashGrid.shared_query``: the same position tensor under the same tables gives
+    the very same output (one pass for the SFP and an entropy context reading its grid); new
+    positions, an in-place change of the positions, another grad mode or a table update give a
+    fresh pass, equal to a direct query."""
+    from baseline.hac.hashgrid import BinaryHashGrid
+
+    torch.manual_seed(0)
+    grid = BinaryHashGrid(resolutions_3d=(4, 8), log2_table_3d=6, resolutions_2d=(8,),
+                          log2_table_2d=6)
+    xyz = torch.rand(50, 3)
+    a = grid.shared_query(xyz)
+    assert grid.shared_query(xyz) is a and torch.equal(a, grid(xyz))
+    b = grid.shared_query(xyz.clone())
+    assert b is not a and torch.equal(b, a)
+    with torch.no_grad():
+        c = grid.shared_query(xyz)
+    assert c is not a and torch.equal(c, a)
+    with torch.no_grad():
+        for g in grid.grids.values():
+            g.params.mul_(-1.0)            # as an optimizer step would move the tables
+    d = grid.shared_query(xyz)
+    assert d is not a and torch.equal(d, grid(xyz)) and not torch.equal(d, a)
+    xyz.add_(0.01)
+    assert torch.equal(grid.shared_query(xyz), grid(xyz))
+
+
+def test_entropy_context_from_the_sfp_grid_trains_codes_and_decodes(tmp_path, scene_maker):
+    """``entropy.context = "provider"`` (patch ``sfp-context``): HAC's entropy model reads the
+    SFP's grid as its context. It owns no grid (no parameters, state, hash bits or file section
+    of one), the rate's gradient does not reach the SFP's tables, the SFP keeps its box at the
+    rate's start, the optimizer holds each table once, and the file decodes to exactly the
+    values the encoder quantized, from the decoded SFP grid."""
+    from baseline.config import config_hash
+    from baseline.codec.container import read_container
+    from baseline.modelfile import decode_model, encode_model
+    from baseline.pipeline import coded_state
+    from baseline.run import load_run, train_run
+    from conftest import demo_cfg
+
+    cfg = demo_cfg(40, patches=["predict-gs", "sfp-context"])
+    assert cfg.entropy.context == "provider"
+    assert config_hash(cfg) != config_hash(demo_cfg(40, patches=["predict-gs"]))
+    scene = scene_maker(n_views=9, width=48, height=36, seed=4)
+    train_run(str(scene), tmp_path / "run", cfg, progress=False)
+    t, _ = load_run(tmp_path / "run")
+    ent, sfp = t.entropy, t.model.provider
+    assert ent.ctx_grid is sfp.grid
+    assert not any(n.startswith("grid.") for n, _ in ent.named_parameters())
+    assert not any(k.startswith("grid.") for k in ent.state_dict())
+    assert t.phase == "adaptive"           # the rate (and the context) ran
+    assert float(ent.hash_bits()) == 0.0 and float(sfp.rate_bits().detach()) > 0
+    # one grid pass per training step serves the SFP and the context
+    calls = []
+    plain = sfp.grid.forward
+    sfp.grid.forward = lambda *a, **k: calls.append(1) or plain(*a, **k)
+    t.step(t.iteration + 1)
+    del sfp.grid.forward
+    assert len(calls) == 1
+    opt_params = [p for g in t.optimizer.param_groups for p in g["params"]]
+    for p in sfp.grid.parameters():
+        assert sum(q is p for q in opt_params) == 1
+    box = (sfp.grid.xyz_min.clone(), sfp.grid.xyz_max.clone())
+    ent.set_bounds(box[0] - 5.0, box[1] + 5.0)          # HAC's box at the rate's start
+    assert torch.equal(sfp.grid.xyz_min, box[0]) and torch.equal(sfp.grid.xyz_max, box[1])
+    # the rate trains the context MLP, not the SFP's tables
+    t.optimizer.zero_grad(set_to_none=True)
+    idx = torch.arange(t.model.n_anchors)
+    xyz = t.model.xyz[idx]
+    _, bits = ent(xyz, t.model.coded_values(idx), t.model.gaussian_mask(idx), training=True)
+    sum(b.sum() for b in bits.values()).backward()
+    assert all(p.grad is None for p in sfp.grid.parameters())
+    assert ent.mlp[0].weight.grad is not None and ent.mlp[0].weight.grad.abs().sum() > 0
+    # coded and decoded
+    f = tmp_path / "m.pgs"
+    encode_model(t.cfg, t.model, ent, f)
+    dec = decode_model(f)
+    assert dec.entropy.ctx_grid is dec.model.provider.grid
+    names = set(read_container(f)[1])
+    assert "em.mlp" in names and "em.grid" not in names
+    cs = coded_state(t.model, ent)          # what the encoder quantized, in the file's order
+    assert cs.index.numel() == dec.model.n_anchors > 0
+    for name, v in cs.values.items():
+        assert torch.equal(dec.model.fixed_values[name], v), name
+
+
+def test_entropy_context_from_a_provider_needs_a_grid_and_the_hac_model():
+    from baseline.config import ConfigError
+
+    with pytest.raises(ValueError, match="has no grid to read"):
+        build_model_and_entropy(["sfp-context"])
+    with pytest.raises(ValueError, match="cannot read a provider's grid"):
+        build_model_and_entropy(["predict-gs", "hacpp", "sfp-context"])
+    with pytest.raises(ConfigError, match="entropy.context must be"):
+        build_config(["predict-gs"], ["entropy.context=shared"])
+
+
+def build_model_and_entropy(patches):
+    from baseline.scaffold.build import build_entropy
+
+    cfg = build_config(patches, ["model.voxel_size=0.2"])
+    return build_entropy(cfg, _pgs_model(cfg))

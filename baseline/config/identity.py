@@ -68,7 +68,8 @@ LATER_KEYS = {("lr", "mask_schedule_scaled"): False,
               ("entropy", "mask_training"): "hac",
               ("lr", "channel_final"): 0.0005,
               ("entropy", "rate_values_per_anchor"): 0,
-              ("densify", "reference_skip_update"): False}
+              ("densify", "reference_skip_update"): False,
+              ("entropy", "context"): "own"}
 
 # Options that only one component reads, added or given new defaults after runs of configs
 # without that component were archived: left out of the hash of a config that does not select

@@ -202,6 +202,12 @@ class EntropyConfig:
     # lambda only moves a method along its own curve: compare methods by BD-rate, never at
     # equal lambda.
     rate_values_per_anchor: int = 0
+    # Where a hash-grid entropy model ("hac") reads its positional context: "own" (HAC: a grid
+    # of its own, trained by the rate, stored in the file) or "provider" (the feature
+    # provider's grid, e.g. a Spatial Feature Pool, read with its gradient stopped: the context
+    # MLP adapts to it, the provider's tables train for the image alone; no second grid to
+    # query, train or store). No published method does the latter.
+    context: str = "own"
     # how the Gaussian masks train (registry kind mask_training, baseline/train/masks.py):
     # "hac" (the mask loss; the rate on visible valid anchors) or another registered strategy
     mask_training: str = "hac"
@@ -305,6 +311,9 @@ def validate(cfg: Config) -> None:
     if not (dev in ("auto", "cpu", "cuda") or re.fullmatch(r"cuda:\d+", dev)):
         raise ConfigError(f"train.device must be auto, cpu, cuda or cuda:N, got '{dev}'")
     _one_of("entropy.mask_training", cfg.entropy.mask_training, registry.names("mask_training"))
+    if cfg.entropy.context not in ("own", "provider"):
+        raise ConfigError(f"entropy.context must be 'own' or 'provider', got "
+                          f"'{cfg.entropy.context}'")
     if cfg.entropy.decoder_quant not in ("noise", "ste"):
         raise ConfigError(f"entropy.decoder_quant must be 'noise' or 'ste', got "
                           f"'{cfg.entropy.decoder_quant}'")

@@ -491,19 +491,79 @@ class HACEntropyModel(HashGridContext, EntropyModel):
     """
 
     kind = "hac"
+    HEADER_KEYS = HashGridContext.HEADER_KEYS | {"context"}
+    CONTEXTS = ("own", "provider")
 
     def __init__(self, attrs: Sequence[CodedAttribute], n_masks: int, *, grid: Optional[BinaryHashGrid] = None,
-                 grid_options: Optional[dict] = None, hidden: int = 100, **options):
+                 grid_options: Optional[dict] = None, hidden: int = 100, context: str = "own",
+                 **options):
         super().__init__(attrs, n_masks, **options)
-        self.grid = grid if grid is not None else BinaryHashGrid(**(grid_options or {}))
+        if context not in self.CONTEXTS:
+            raise ValueError(f"context must be one of {self.CONTEXTS}, got {context!r}")
+        self.context = context
+        if context == "provider":
+            # the feature provider's grid (entropy.context = "provider"): read, never owned:
+            # not a submodule, so it is not in this model's parameters, state or file sections
+            if grid is None:
+                raise ValueError("a context read from the feature provider needs its grid")
+            object.__setattr__(self, "_provider_grid", grid)
+        else:
+            self.grid = grid if grid is not None else BinaryHashGrid(**(grid_options or {}))
         self.hidden = int(hidden)
         self.n_out = sum(2 * a.dims for a in self.attrs) + len(self.attrs)
-        self.mlp = nn.Sequential(nn.Linear(self.grid.output_dim, self.hidden), nn.ReLU(),
+        self.mlp = nn.Sequential(nn.Linear(self.ctx_grid.output_dim, self.hidden), nn.ReLU(),
                                  nn.Linear(self.hidden, self.n_out))
+
+    @classmethod
+    def build(cls, cfg, attrs, n_masks: int, n_anchors: int, context_grid=None):
+        """``context_grid``: the feature provider's grid, read as the context when
+        ``entropy.context`` is "provider"."""
+        if cfg.entropy.context == "provider":
+            return cls(attrs, n_masks, grid=context_grid, hidden=cfg.entropy.context_hidden,
+                       context="provider")
+        return super().build(cfg, attrs, n_masks, n_anchors)
+
+    @classmethod
+    def check_header(cls, entry: dict, key: str) -> int:
+        if entry.get("context", "own") == "own":
+            return super().check_header(entry, key)
+        if entry["context"] != "provider":
+            raise header_error(f"{key}.context", f"must be one of {cls.CONTEXTS}")
+        unknown_keys(entry, cls.HEADER_KEYS - {"grid", "grid_options"}, key)
+        if "hidden" in entry:
+            int_field(entry["hidden"], f"{key}.hidden", 1, MAX_HIDDEN)
+        EntropyModel.check_header.__func__(cls, entry, key)
+        return 0                # the grid is the provider's, counted with it
+
+    @property
+    def ctx_grid(self) -> BinaryHashGrid:
+        """The grid the context is read from: its own, or the provider's."""
+        return self._provider_grid if self.context == "provider" else self.grid
+
+    def _features(self, xyz: torch.Tensor) -> torch.Tensor:
+        """Training-path context features of ``xyz``. The provider's grid is read through its
+        one shared pass per step and with its gradient stopped (the rate trains the context
+        MLP, not the provider's tables)."""
+        if self.context == "provider":
+            return self._provider_grid.shared_query(xyz).detach()
+        return self.grid(xyz)
+
+    def set_bounds(self, xyz_min, xyz_max) -> None:
+        """HAC's box at the rate's start; the provider's grid keeps the provider's box."""
+        if self.context == "own":
+            super().set_bounds(xyz_min, xyz_max)
+
+    def hash_bits(self) -> torch.Tensor:
+        """Its own grid's bits; none when the grid is the provider's (the provider's
+        ``rate_bits`` counts them)."""
+        return super().hash_bits() if self.context == "own" else torch.zeros(())
 
     def config(self) -> dict:
         cfg = super().config()
-        cfg.update(hidden=self.hidden, grid=self.grid_config())
+        if self.context == "provider":
+            cfg.update(hidden=self.hidden, context="provider")
+        else:
+            cfg.update(hidden=self.hidden, grid=self.grid_config())
         return cfg
 
     def _split(self, out, exact: bool) -> Params:
@@ -531,15 +591,15 @@ class HACEntropyModel(HashGridContext, EntropyModel):
         if exact:
             with torch.no_grad():
                 ex = _ctx if _ctx is not None else self._exact_context()
-                return self._split(ex(self.grid.features_fixed(xyz)), exact=True)
-        return self._split(self.mlp(self.grid(xyz)), exact=False)
+                return self._split(ex(self.ctx_grid.features_fixed(xyz)), exact=True)
+        return self._split(self.mlp(self._features(xyz)), exact=False)
 
     def train_params(self, xyz: torch.Tensor, rows: torch.Tensor):
         """As :meth:`params`, but the mean/scale outputs (172 of HAC's 175 output columns) only
         for ``rows``: every visible anchor needs its adaptive step, only the ~5% rate sample
         needs a likelihood. Same function as the full head; the dropped columns were never
         used (about 2.5x fewer multiply-adds in the context MLP per training step)."""
-        h = self.mlp[1](self.mlp[0](self.grid(xyz)))  # [N, hidden]
+        h = self.mlp[1](self.mlp[0](self._features(xyz)))  # [N, hidden]
         last = self.mlp[2]
         n_attrs = len(self.attrs)
         adj_off = self.n_out - n_attrs
@@ -558,6 +618,9 @@ class HACEntropyModel(HashGridContext, EntropyModel):
         are the decoder's.
         """
         round_module_(self.mlp, precision)
+        if self.context == "provider":      # the grid and its box are in the provider's sections
+            sd = {f"mlp.{k}": v for k, v in self.mlp.state_dict().items()}
+            return {"mlp": pack_state_dict(sd, precision)}
         sd = {"xyz_min": self.grid.xyz_min, "xyz_max": self.grid.xyz_max}
         sd.update({f"mlp.{k}": v for k, v in self.mlp.state_dict().items()})
         used = None if used_xyz is None else self.grid.used_values(used_xyz)
@@ -565,10 +628,19 @@ class HACEntropyModel(HashGridContext, EntropyModel):
                 "mlp": pack_state_dict(sd, precision, keep=("xyz_min", "xyz_max"))}
 
     def load_serialized(self, blobs: Dict[str, bytes], used_xyz=None) -> None:
-        for k in ("grid", "mlp"):
+        for k in (("mlp",) if self.context == "provider" else ("grid", "mlp")):
             if k not in blobs:
                 raise BitstreamError(f"entropy model: missing section '{k}'")
         sd = unpack_state_dict(blobs["mlp"], what="entropy model weights")
+        if self.context == "provider":
+            if "grid" in blobs:
+                raise BitstreamError("entropy model: a grid section in a file whose context "
+                                     "is the feature provider's grid")
+            try:
+                self.mlp.load_state_dict({k[4:]: v for k, v in sd.items() if k.startswith("mlp.")})
+            except (KeyError, RuntimeError, ValueError) as e:
+                raise BitstreamError(f"entropy model weights do not fit the model: {e}") from None
+            return
         try:
             self.grid.set_bounds(sd.pop("xyz_min"), sd.pop("xyz_max"))
             self.mlp.load_state_dict({k[4:]: v for k, v in sd.items() if k.startswith("mlp.")})

@@ -46,6 +46,7 @@ from __future__ import annotations
 
 import math
 import os
+import weakref
 from typing import Dict, Optional, Sequence, Tuple
 
 import numpy as np
@@ -552,6 +553,13 @@ class BinaryHashGrid(nn.Module):
         self.register_buffer("xyz_min", torch.zeros(3))
         self.register_buffer("xyz_max", torch.ones(3))
 
+    def __getstate__(self):
+        """Pickling and deep copies leave out :meth:`shared_query`'s entry (a weak reference
+        and a tensor of the last step's graph)."""
+        state = dict(super().__getstate__())
+        state.pop("_memo", None)
+        return state
+
     # ----------------------------------------------------------------- sizes
     @property
     def output_dim(self) -> int:
@@ -688,6 +696,23 @@ class BinaryHashGrid(nn.Module):
                                signs=True)
         tables = {k: t.to(u.dtype) for k, t in self.binary_tables().items()}
         return self._query(u, tables, exact=False)
+
+    def shared_query(self, xyz: torch.Tensor) -> torch.Tensor:
+        """``self(xyz)``, computed once for one position tensor: two users of one grid that
+        query the same positions in one step (a feature provider and an entropy context
+        reading the provider's grid, ``entropy.context = "provider"``) share the pass and its
+        backward. The result is reused only for the very same ``xyz`` object, unmodified
+        (its version), under the same grad mode, while no table has changed (the optimizer's
+        in-place step bumps their versions; a load that swaps a table's storage moves its
+        address); otherwise it is computed anew. Holds one entry."""
+        key = (xyz._version, torch.is_grad_enabled(),
+               tuple((g.params._version, g.params.data_ptr()) for g in self.grids.values()))
+        memo = getattr(self, "_memo", None)
+        if memo is not None and memo[0]() is xyz and memo[1] == key:
+            return memo[2]
+        out = self(xyz)
+        self._memo = (weakref.ref(xyz), key, out)
+        return out
 
     @torch.no_grad()
     def features_fixed(self, xyz: torch.Tensor, normalized: bool = False) -> torch.Tensor:

@@ -32,6 +32,16 @@ def build_model(cfg: Config, points: torch.Tensor) -> tuple[AnchorModel, float]:
 def build_entropy(cfg: Config, model: AnchorModel):
     """The configured entropy model, its head sized from the provider's coded attributes."""
     cls = registry.component_class("entropy_model", cfg.entropy.model)
+    if cfg.entropy.context == "provider":
+        grid = model.provider.context_grid()
+        if grid is None:
+            raise ValueError(f"entropy.context = 'provider': the feature provider "
+                             f"'{cfg.model.feature_provider}' has no grid to read")
+        if "provider" not in getattr(cls, "CONTEXTS", ()):
+            raise ValueError(f"entropy.context = 'provider': the '{cfg.entropy.model}' entropy "
+                             f"model cannot read a provider's grid (the 'hac' model can)")
+        return cls.build(cfg, model.coded_attributes(), model.n_offsets, model.n_anchors,
+                         context_grid=grid)
     return cls.build(cfg, model.coded_attributes(), model.n_offsets, model.n_anchors)
 
 
