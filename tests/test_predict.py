@@ -594,3 +594,48 @@ def build_model_and_entropy(patches):
 
     cfg = build_config(patches, ["model.voxel_size=0.2"])
     return build_entropy(cfg, _pgs_model(cfg))
+
+
+def test_a_header_naming_the_providers_grid_where_there_is_none_is_refused(tmp_path):
+    """A file whose entropy entry says its context is the provider's grid decodes only when
+    the provider has one and no grid of the entropy model's own is described; otherwise one
+    BitstreamError naming the field."""
+    from baseline.codec.container import BitstreamError, build_container, read_container
+    from baseline.codec.header import BINDING_FIELDS, digest_sections
+    from baseline.modelfile import decode_model, encode_model
+    from baseline.scaffold.build import build_entropy
+
+    def encoded(patches):
+        cfg = build_config(patches, ["model.voxel_size=0.2"])
+        model = _pgs_model(cfg)
+        f = tmp_path / ("+".join(patches) + ".pgs")
+        encode_model(cfg, model, build_entropy(cfg, model), f)
+        return read_container(f)
+
+    def decode_with(header, sections, name):
+        """``header`` edited, then bound to the sections again (as a writer of such a file
+        would: the checks under test are the entropy entry's, not the file's binding)."""
+        rest = {k: v for k, v in header.items() if k not in BINDING_FIELDS}
+        items = list(sections.items())
+        f = tmp_path / name
+        f.write_bytes(build_container({**rest, **digest_sections(rest, items)}, items))
+        return decode_model(f)
+
+    header, sections = encoded(["tandt"])                  # HAC: the explicit feature table
+    e = dict(header["entropy"])
+    e.pop("grid")
+    e["context"] = "provider"
+    with pytest.raises(BitstreamError, match="this file's provider has none"):
+        decode_with({**header, "entropy": e}, sections, "a.pgs")
+    with pytest.raises(BitstreamError, match="entropy.context"):
+        decode_with({**header, "entropy": {**e, "context": "neighbours"}}, sections, "b.pgs")
+
+    header, sections = encoded(["predict-gs", "sfp-context"])
+    assert decode_with(header, sections, "c.pgs").entropy.context == "provider"
+    grid = encoded(["predict-gs"])[0]["entropy"]["grid"]
+    with pytest.raises(BitstreamError, match="entropy"):      # a grid described as well
+        decode_with({**header, "entropy": {**header["entropy"], "grid": grid}}, sections, "d.pgs")
+    e = dict(header["entropy"])
+    e.pop("context")                                         # its own grid, not described
+    with pytest.raises(BitstreamError, match="grid"):
+        decode_with({**header, "entropy": e}, sections, "e.pgs")
