@@ -519,7 +519,8 @@ def test_a_grid_pass_is_shared_only_for_the_same_positions_and_tables():
     assert torch.equal(grid.shared_query(xyz), grid(xyz))
 
 
-def test_entropy_context_from_the_sfp_grid_trains_codes_and_decodes(tmp_path, scene_maker):
+@pytest.mark.parametrize("coding", [[], ["hacpp"]], ids=["HAC", "HAC++"])
+def test_entropy_context_from_the_sfp_grid_trains_codes_and_decodes(tmp_path, scene_maker, coding):
     """``entropy.context = "provider"`` (patch ``sfp-context``): HAC's entropy model reads the
     SFP's grid as its context. It owns no grid (no parameters, state, hash bits or file section
     of one), the rate's gradient does not reach the SFP's tables, the SFP keeps its box at the
@@ -532,9 +533,9 @@ def test_entropy_context_from_the_sfp_grid_trains_codes_and_decodes(tmp_path, sc
     from baseline.run import load_run, train_run
     from conftest import demo_cfg
 
-    cfg = demo_cfg(40, patches=["predict-gs", "sfp-context"])
+    cfg = demo_cfg(40, patches=["predict-gs", *coding, "sfp-context"])
     assert cfg.entropy.context == "provider"
-    assert config_hash(cfg) != config_hash(demo_cfg(40, patches=["predict-gs"]))
+    assert config_hash(cfg) != config_hash(demo_cfg(40, patches=["predict-gs", *coding]))
     scene = scene_maker(n_views=9, width=48, height=36, seed=4)
     train_run(str(scene), tmp_path / "run", cfg, progress=False)
     t, _ = load_run(tmp_path / "run")
@@ -544,13 +545,17 @@ def test_entropy_context_from_the_sfp_grid_trains_codes_and_decodes(tmp_path, sc
     assert not any(k.startswith("grid.") for k in ent.state_dict())
     assert t.phase == "adaptive"           # the rate (and the context) ran
     assert float(ent.hash_bits()) == 0.0 and float(sfp.rate_bits().detach()) > 0
-    # one grid pass per training step serves the SFP and the context
+    # one grid pass per training step serves the SFP and the context of the visible anchors
+    # (HAC++'s rate, sampled over all anchors, reads its sample's positions in a pass of its own)
     calls = []
     plain = sfp.grid.forward
-    sfp.grid.forward = lambda *a, **k: calls.append(1) or plain(*a, **k)
+    sfp.grid.forward = lambda *a, **k: calls.append(len(a[0])) or plain(*a, **k)
     t.step(t.iteration + 1)
     del sfp.grid.forward
-    assert len(calls) == 1
+    if coding:
+        assert len(calls) == 2 and calls[1] < calls[0]
+    else:
+        assert len(calls) == 1
     opt_params = [p for g in t.optimizer.param_groups for p in g["params"]]
     for p in sfp.grid.parameters():
         assert sum(q is p for q in opt_params) == 1
@@ -572,10 +577,12 @@ def test_entropy_context_from_the_sfp_grid_trains_codes_and_decodes(tmp_path, sc
     assert dec.entropy.ctx_grid is dec.model.provider.grid
     names = set(read_container(f)[1])
     assert "em.mlp" in names and "em.grid" not in names
-    cs = coded_state(t.model, ent)          # what the encoder quantized, in the file's order
+    cs = coded_state(t.model, ent, t.cfg.codec.positions)    # what the encoder quantized
     assert cs.index.numel() == dec.model.n_anchors > 0
+    at = {p: i for i, p in enumerate(map(tuple, cs.xyz.tolist()))}   # the file's anchor order
+    order = torch.tensor([at[p] for p in map(tuple, dec.model.xyz.tolist())])
     for name, v in cs.values.items():
-        assert torch.equal(dec.model.fixed_values[name], v), name
+        assert torch.equal(dec.model.fixed_values[name], v[order]), name
 
 
 def test_entropy_context_from_a_provider_needs_a_grid_and_the_hac_model():
@@ -583,8 +590,8 @@ def test_entropy_context_from_a_provider_needs_a_grid_and_the_hac_model():
 
     with pytest.raises(ValueError, match="has no grid to read"):
         build_model_and_entropy(["sfp-context"])
-    with pytest.raises(ValueError, match="cannot read a provider's grid"):
-        build_model_and_entropy(["predict-gs", "hacpp", "sfp-context"])
+    with pytest.raises(ValueError, match="no grid context"):
+        build_model_and_entropy(["predict-gs", "entropy-factorized", "sfp-context"])
     with pytest.raises(ConfigError, match="entropy.context must be"):
         build_config(["predict-gs"], ["entropy.context=shared"])
 

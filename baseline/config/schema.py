@@ -202,7 +202,7 @@ class EntropyConfig:
     # lambda only moves a method along its own curve: compare methods by BD-rate, never at
     # equal lambda.
     rate_values_per_anchor: int = 0
-    # Where a hash-grid entropy model ("hac") reads its positional context: "own" (HAC: a grid
+    # Where a hash-grid entropy model ("hac", "hacpp") reads its positional context: "own" (a grid
     # of its own, trained by the rate, stored in the file) or "provider" (the feature
     # provider's grid, e.g. a Spatial Feature Pool, read with its gradient stopped: the context
     # MLP adapts to it, the provider's tables train for the image alone; no second grid to

@@ -449,70 +449,21 @@ class EntropyModel(nn.Module):
 
 
 class HashGridContext:
-    """Mixin for entropy models whose context is a binary hash grid (``self.grid``) over the
-    anchors' positions: its bounds, its hash bits (the grid's own rate), its options, and its
-    construction from a config (the grid layout of ``entropy.grid``, the context MLP's width)."""
+    """Mixin for entropy models whose context is a binary hash grid over the anchors'
+    positions: where the grid comes from, its bounds, its hash bits (the grid's own rate), its
+    options and file sections, and the model's construction from a config (the grid layout of
+    ``entropy.grid``, the context MLP's width).
 
-    HEADER_KEYS = EntropyModel.HEADER_KEYS | {"hidden", "grid", "grid_options"}
-
-    @classmethod
-    def build(cls, cfg, attrs, n_masks: int, n_anchors: int):
-        return cls(attrs, n_masks, grid_options=grid_options(cfg.entropy.grid, n_anchors),
-                   hidden=cfg.entropy.context_hidden)
-
-    @classmethod
-    def check_header(cls, entry: dict, key: str) -> int:
-        entries = super().check_header(entry, key)
-        if "hidden" in entry:
-            int_field(entry["hidden"], f"{key}.hidden", 1, MAX_HIDDEN)
-        for gk in ("grid", "grid_options"):
-            if gk in entry:
-                entries += check_grid_options(entry[gk], f"{key}.{gk}")
-        if not entries:
-            raise header_error(f"{key}.grid", f"the '{entry.get('kind')}' entropy model needs "
-                                              f"its grid layout")
-        return entries
-
-    def set_bounds(self, xyz_min, xyz_max) -> None:
-        self.grid.set_bounds(xyz_min, xyz_max)
-
-    def hash_bits(self) -> torch.Tensor:
-        return self.grid.hash_bits()
-
-    def grid_config(self) -> dict:
-        return {k: (list(v) if isinstance(v, tuple) else v) for k, v in self.grid.config.items()}
-
-
-class HACEntropyModel(HashGridContext, EntropyModel):
-    """HAC's hash-grid context model (see the module docstring).
-
-    Options: ``grid`` (a :class:`BinaryHashGrid` to use), or ``grid_options`` (its constructor
-    arguments, default HAC's layout); ``hidden`` (100); ``chunk``; ``escape_limit``.
+    ``context`` "own" (HAC): a grid of its own (``self.grid``), trained by the rate, stored in
+    the file. "provider" (``entropy.context = "provider"``): the feature provider's grid,
+    read, never owned: not a submodule, so it is not in this model's parameters, state, hash
+    bits or file sections; read in training through the grid's one shared pass per step
+    (:meth:`BinaryHashGrid.shared_query`) with its gradient stopped, so the rate trains the
+    context networks and not the provider's tables; its box stays the provider's.
     """
 
-    kind = "hac"
-    HEADER_KEYS = HashGridContext.HEADER_KEYS | {"context"}
+    HEADER_KEYS = EntropyModel.HEADER_KEYS | {"hidden", "grid", "grid_options", "context"}
     CONTEXTS = ("own", "provider")
-
-    def __init__(self, attrs: Sequence[CodedAttribute], n_masks: int, *, grid: Optional[BinaryHashGrid] = None,
-                 grid_options: Optional[dict] = None, hidden: int = 100, context: str = "own",
-                 **options):
-        super().__init__(attrs, n_masks, **options)
-        if context not in self.CONTEXTS:
-            raise ValueError(f"context must be one of {self.CONTEXTS}, got {context!r}")
-        self.context = context
-        if context == "provider":
-            # the feature provider's grid (entropy.context = "provider"): read, never owned:
-            # not a submodule, so it is not in this model's parameters, state or file sections
-            if grid is None:
-                raise ValueError("a context read from the feature provider needs its grid")
-            object.__setattr__(self, "_provider_grid", grid)
-        else:
-            self.grid = grid if grid is not None else BinaryHashGrid(**(grid_options or {}))
-        self.hidden = int(hidden)
-        self.n_out = sum(2 * a.dims for a in self.attrs) + len(self.attrs)
-        self.mlp = nn.Sequential(nn.Linear(self.ctx_grid.output_dim, self.hidden), nn.ReLU(),
-                                 nn.Linear(self.hidden, self.n_out))
 
     @classmethod
     def build(cls, cfg, attrs, n_masks: int, n_anchors: int, context_grid=None):
@@ -521,19 +472,42 @@ class HACEntropyModel(HashGridContext, EntropyModel):
         if cfg.entropy.context == "provider":
             return cls(attrs, n_masks, grid=context_grid, hidden=cfg.entropy.context_hidden,
                        context="provider")
-        return super().build(cfg, attrs, n_masks, n_anchors)
+        return cls(attrs, n_masks, grid_options=grid_options(cfg.entropy.grid, n_anchors),
+                   hidden=cfg.entropy.context_hidden)
 
     @classmethod
     def check_header(cls, entry: dict, key: str) -> int:
-        if entry.get("context", "own") == "own":
-            return super().check_header(entry, key)
-        if entry["context"] != "provider":
+        """Returns the grid entries the decoder builds for it: none when the grid is the
+        provider's (counted with the provider)."""
+        context = entry.get("context", "own")
+        if context not in cls.CONTEXTS:
             raise header_error(f"{key}.context", f"must be one of {cls.CONTEXTS}")
-        unknown_keys(entry, cls.HEADER_KEYS - {"grid", "grid_options"}, key)
+        if context == "provider":
+            unknown_keys(entry, cls.HEADER_KEYS - {"grid", "grid_options"}, key)
+        entries = super().check_header(entry, key)  # type: ignore[misc]
         if "hidden" in entry:
             int_field(entry["hidden"], f"{key}.hidden", 1, MAX_HIDDEN)
-        EntropyModel.check_header.__func__(cls, entry, key)
-        return 0                # the grid is the provider's, counted with it
+        if context == "provider":
+            return 0
+        for gk in ("grid", "grid_options"):
+            if gk in entry:
+                entries += check_grid_options(entry[gk], f"{key}.{gk}")
+        if not entries:
+            raise header_error(f"{key}.grid", f"the '{entry.get('kind')}' entropy model needs "
+                                              f"its grid layout")
+        return entries
+
+    def _init_grid(self, grid: Optional[BinaryHashGrid], grid_options: Optional[dict],
+                   context: str) -> None:
+        if context not in self.CONTEXTS:
+            raise ValueError(f"context must be one of {self.CONTEXTS}, got {context!r}")
+        self.context = context
+        if context == "provider":
+            if grid is None:
+                raise ValueError("a context read from the feature provider needs its grid")
+            object.__setattr__(self, "_provider_grid", grid)
+        else:
+            self.grid = grid if grid is not None else BinaryHashGrid(**(grid_options or {}))
 
     @property
     def ctx_grid(self) -> BinaryHashGrid:
@@ -541,9 +515,7 @@ class HACEntropyModel(HashGridContext, EntropyModel):
         return self._provider_grid if self.context == "provider" else self.grid
 
     def _features(self, xyz: torch.Tensor) -> torch.Tensor:
-        """Training-path context features of ``xyz``. The provider's grid is read through its
-        one shared pass per step and with its gradient stopped (the rate trains the context
-        MLP, not the provider's tables)."""
+        """Training-path context features of ``xyz`` [N, 3]."""
         if self.context == "provider":
             return self._provider_grid.shared_query(xyz).detach()
         return self.grid(xyz)
@@ -551,19 +523,75 @@ class HACEntropyModel(HashGridContext, EntropyModel):
     def set_bounds(self, xyz_min, xyz_max) -> None:
         """HAC's box at the rate's start; the provider's grid keeps the provider's box."""
         if self.context == "own":
-            super().set_bounds(xyz_min, xyz_max)
+            self.grid.set_bounds(xyz_min, xyz_max)
 
     def hash_bits(self) -> torch.Tensor:
         """Its own grid's bits; none when the grid is the provider's (the provider's
         ``rate_bits`` counts them)."""
-        return super().hash_bits() if self.context == "own" else torch.zeros(())
+        return self.grid.hash_bits() if self.context == "own" else torch.zeros(())
+
+    def grid_config(self) -> dict:
+        """Its entry's grid fields: the grid layout, or ``context = "provider"``."""
+        if self.context == "provider":
+            return {"context": "provider"}
+        return {"grid": {k: (list(v) if isinstance(v, tuple) else v)
+                         for k, v in self.grid.config.items()}}
+
+    def _grid_state(self) -> dict:
+        """Its own grid's bounds, stored beside the context weights (none for the provider's)."""
+        if self.context == "provider":
+            return {}
+        return {"xyz_min": self.grid.xyz_min, "xyz_max": self.grid.xyz_max}
+
+    def _grid_sections(self, used_xyz) -> Dict[str, bytes]:
+        """Section ``grid`` of its own grid (with ``used_xyz`` only the entries those positions
+        read); none for the provider's."""
+        if self.context == "provider":
+            return {}
+        used = None if used_xyz is None else self.grid.used_values(used_xyz)
+        return {"grid": self.grid.encode_bits(used)}
+
+    def _load_grid(self, blobs: Dict[str, bytes], sd: dict, used_xyz) -> None:
+        """Its own grid from section ``grid`` and the bounds in ``sd`` (popped); with the
+        provider's grid, a ``grid`` section is an error."""
+        if self.context == "provider":
+            if "grid" in blobs:
+                raise BitstreamError("entropy model: a grid section in a file whose context is "
+                                     "the feature provider's grid")
+            return
+        if "grid" not in blobs:
+            raise BitstreamError("entropy model: missing section 'grid'")
+        try:
+            self.grid.set_bounds(sd.pop("xyz_min"), sd.pop("xyz_max"))
+        except (KeyError, ValueError) as e:
+            raise BitstreamError(f"entropy model weights do not fit the model: {e}") from None
+        used = None if used_xyz is None else self.grid.used_values(used_xyz)
+        self.grid.decode_bits(blobs["grid"], used)
+
+
+class HACEntropyModel(HashGridContext, EntropyModel):
+    """HAC's hash-grid context model (see the module docstring).
+
+    Options: ``grid`` (a :class:`BinaryHashGrid` to use), or ``grid_options`` (its constructor
+    arguments, default HAC's layout); ``context`` ("own", or "provider" with ``grid`` the
+    feature provider's: :class:`HashGridContext`); ``hidden`` (100); ``chunk``; ``escape_limit``.
+    """
+
+    kind = "hac"
+
+    def __init__(self, attrs: Sequence[CodedAttribute], n_masks: int, *, grid: Optional[BinaryHashGrid] = None,
+                 grid_options: Optional[dict] = None, hidden: int = 100, context: str = "own",
+                 **options):
+        super().__init__(attrs, n_masks, **options)
+        self._init_grid(grid, grid_options, context)
+        self.hidden = int(hidden)
+        self.n_out = sum(2 * a.dims for a in self.attrs) + len(self.attrs)
+        self.mlp = nn.Sequential(nn.Linear(self.ctx_grid.output_dim, self.hidden), nn.ReLU(),
+                                 nn.Linear(self.hidden, self.n_out))
 
     def config(self) -> dict:
         cfg = super().config()
-        if self.context == "provider":
-            cfg.update(hidden=self.hidden, context="provider")
-        else:
-            cfg.update(hidden=self.hidden, grid=self.grid_config())
+        cfg.update(hidden=self.hidden, **self.grid_config())
         return cfg
 
     def _split(self, out, exact: bool) -> Params:
@@ -612,42 +640,27 @@ class HACEntropyModel(HashGridContext, EntropyModel):
 
     def serialize(self, precision: str = "float32", used_xyz=None) -> Dict[str, bytes]:
         """Sections ``grid`` (Bernoulli-coded binary tables; with ``used_xyz`` only the entries
-        those positions read) and ``mlp`` (weights + grid bounds).
+        those positions read; none when the grid is the provider's) and ``mlp`` (weights + grid
+        bounds).
 
         Rounds the context MLP in place to ``precision`` first, so the encoder's probabilities
         are the decoder's.
         """
         round_module_(self.mlp, precision)
-        if self.context == "provider":      # the grid and its box are in the provider's sections
-            sd = {f"mlp.{k}": v for k, v in self.mlp.state_dict().items()}
-            return {"mlp": pack_state_dict(sd, precision)}
-        sd = {"xyz_min": self.grid.xyz_min, "xyz_max": self.grid.xyz_max}
+        sd = self._grid_state()
         sd.update({f"mlp.{k}": v for k, v in self.mlp.state_dict().items()})
-        used = None if used_xyz is None else self.grid.used_values(used_xyz)
-        return {"grid": self.grid.encode_bits(used),
+        return {**self._grid_sections(used_xyz),
                 "mlp": pack_state_dict(sd, precision, keep=("xyz_min", "xyz_max"))}
 
     def load_serialized(self, blobs: Dict[str, bytes], used_xyz=None) -> None:
-        for k in (("mlp",) if self.context == "provider" else ("grid", "mlp")):
-            if k not in blobs:
-                raise BitstreamError(f"entropy model: missing section '{k}'")
+        if "mlp" not in blobs:
+            raise BitstreamError("entropy model: missing section 'mlp'")
         sd = unpack_state_dict(blobs["mlp"], what="entropy model weights")
-        if self.context == "provider":
-            if "grid" in blobs:
-                raise BitstreamError("entropy model: a grid section in a file whose context "
-                                     "is the feature provider's grid")
-            try:
-                self.mlp.load_state_dict({k[4:]: v for k, v in sd.items() if k.startswith("mlp.")})
-            except (KeyError, RuntimeError, ValueError) as e:
-                raise BitstreamError(f"entropy model weights do not fit the model: {e}") from None
-            return
+        self._load_grid(blobs, sd, used_xyz)
         try:
-            self.grid.set_bounds(sd.pop("xyz_min"), sd.pop("xyz_max"))
             self.mlp.load_state_dict({k[4:]: v for k, v in sd.items() if k.startswith("mlp.")})
         except (KeyError, RuntimeError, ValueError) as e:
             raise BitstreamError(f"entropy model weights do not fit the model: {e}") from None
-        used = None if used_xyz is None else self.grid.used_values(used_xyz)
-        self.grid.decode_bits(blobs["grid"], used)
 
 
 class FactorizedEntropyModel(EntropyModel):

@@ -23,7 +23,8 @@ mixture for the main coded attribute (docs/method.md section 6; YihangChen-ee/HA
   path's up to the fixed point's ~2^-20 relative perturbation and the coder's 16-bit
   frequencies.
 
-Options: ``grid`` / ``grid_options``, ``hidden`` (100), ``main`` (the main attribute's name,
+Options: ``grid`` / ``grid_options``, ``context`` ("own"; "provider": the feature provider's
+grid, :class:`~baseline.hac.entropy.HashGridContext`), ``hidden`` (100), ``main`` (the main attribute's name,
 default the first coded attribute, which providers list first: feat, residual), ``n_chunks``
 (5), ``chunk_hidden`` (40), and the base options ``chunk``, ``escape_limit``, ``pipeline``.
 """
@@ -98,7 +99,7 @@ class HACPPEntropyModel(HashGridContext, EntropyModel):
     def __init__(self, attrs: Sequence[CodedAttribute], n_masks: int, *,
                  grid: Optional[BinaryHashGrid] = None, grid_options: Optional[dict] = None,
                  hidden: int = 100, main: Optional[str] = None, n_chunks: int = 5,
-                 chunk_hidden: int = 40, **options):
+                 chunk_hidden: int = 40, context: str = "own", **options):
         super().__init__(attrs, n_masks, **options)
         self.main = self.attrs[0].name if main is None else str(main)
         ma = {a.name: a for a in self.attrs}.get(self.main)
@@ -108,7 +109,7 @@ class HACPPEntropyModel(HashGridContext, EntropyModel):
         if ma.masked:
             raise ValueError(f"hacpp: the main attribute '{self.main}' must not be masked")
         self.main_attr = ma
-        self.grid = grid if grid is not None else BinaryHashGrid(**(grid_options or {}))
+        self._init_grid(grid, grid_options, context)
         self.hidden = int(hidden)
         self.n_chunks = int(n_chunks)
         self.chunk_hidden = int(chunk_hidden)
@@ -116,7 +117,7 @@ class HACPPEntropyModel(HashGridContext, EntropyModel):
         d = ma.dims
         self.n_out = sum((3 if a.name == self.main else 2) * a.dims for a in self.attrs) \
             + len(self.attrs)
-        self.mlp = nn.Sequential(nn.Linear(self.grid.output_dim, self.hidden), nn.ReLU(),
+        self.mlp = nn.Sequential(nn.Linear(self.ctx_grid.output_dim, self.hidden), nn.ReLU(),
                                  nn.Linear(self.hidden, self.n_out))
         offs = np.concatenate([[0], np.cumsum(self.sizes)]).tolist()
         self.offsets = offs
@@ -128,8 +129,8 @@ class HACPPEntropyModel(HashGridContext, EntropyModel):
     # ------------------------------------------------------------------ configuration
     def config(self) -> dict:
         cfg = super().config()
-        cfg.update(hidden=self.hidden, grid=self.grid_config(), main=self.main, n_chunks=self.n_chunks,
-                   chunk_hidden=self.chunk_hidden)
+        cfg.update(hidden=self.hidden, **self.grid_config(), main=self.main,
+                   n_chunks=self.n_chunks, chunk_hidden=self.chunk_hidden)
         return cfg
 
     # ------------------------------------------------------------------ hyperprior
@@ -166,10 +167,10 @@ class HACPPEntropyModel(HashGridContext, EntropyModel):
         if exact:
             with torch.no_grad():
                 hyper, nets = _ctx if _ctx is not None else self._exact_context()
-                P = self._split(hyper(self.grid.features_fixed(xyz)), exact=True)
+                P = self._split(hyper(self.ctx_grid.features_fixed(xyz)), exact=True)
                 P["__ctx_nets__"] = nets
                 return P
-        return self._split(self.mlp(self.grid(xyz)), exact=False)
+        return self._split(self.mlp(self._features(xyz)), exact=False)
 
     def _ctx_inputs(self, k: int, prev: torch.Tensor, hyper) -> torch.Tensor:
         return torch.cat([prev[:, :self.offsets[k]], *hyper], dim=-1)
@@ -187,7 +188,7 @@ class HACPPEntropyModel(HashGridContext, EntropyModel):
 
     # ------------------------------------------------------------------ training
     def train_params(self, xyz: torch.Tensor, rows: torch.Tensor):
-        h = self.mlp[1](self.mlp[0](self.grid(xyz)))
+        h = self.mlp[1](self.mlp[0](self._features(xyz)))
         last = self.mlp[2]
         adj_off = self.n_out - len(self.attrs)
         adj = F.linear(h, last.weight[adj_off:], last.bias[adj_off:])
@@ -302,27 +303,24 @@ class HACPPEntropyModel(HashGridContext, EntropyModel):
     def serialize(self, precision: str = "float32", used_xyz=None) -> Dict[str, bytes]:
         round_module_(self.mlp, precision)
         round_module_(self.ctx, precision)
-        sd = {"xyz_min": self.grid.xyz_min, "xyz_max": self.grid.xyz_max}
+        sd = self._grid_state()
         sd.update({f"mlp.{k}": v for k, v in self.mlp.state_dict().items()})
-        used = None if used_xyz is None else self.grid.used_values(used_xyz)
-        return {"grid": self.grid.encode_bits(used),
+        return {**self._grid_sections(used_xyz),
                 "mlp": pack_state_dict(sd, precision, keep=("xyz_min", "xyz_max")),
                 "ctx": pack_state_dict(self.ctx.state_dict(), precision)}
 
     def load_serialized(self, blobs: Dict[str, bytes], used_xyz=None) -> None:
-        for k in ("grid", "mlp", "ctx"):
+        for k in ("mlp", "ctx"):
             if k not in blobs:
                 raise BitstreamError(f"entropy model: missing section '{k}'")
         sd = unpack_state_dict(blobs["mlp"], what="entropy model weights")
         cd = unpack_state_dict(blobs["ctx"], what="channel context weights")
+        self._load_grid(blobs, sd, used_xyz)
         try:
-            self.grid.set_bounds(sd.pop("xyz_min"), sd.pop("xyz_max"))
             self.mlp.load_state_dict({k[4:]: v for k, v in sd.items() if k.startswith("mlp.")})
             self.ctx.load_state_dict(cd)
         except (KeyError, RuntimeError, ValueError) as e:
             raise BitstreamError(f"entropy model weights do not fit the model: {e}") from None
-        used = None if used_xyz is None else self.grid.used_values(used_xyz)
-        self.grid.decode_bits(blobs["grid"], used)
 
 
 def mixture_bits_reference(x, q, m1, s1, l1, m2, s2, l2) -> torch.Tensor:

@@ -39,7 +39,7 @@ def build_entropy(cfg: Config, model: AnchorModel):
                              f"'{cfg.model.feature_provider}' has no grid to read")
         if "provider" not in getattr(cls, "CONTEXTS", ()):
             raise ValueError(f"entropy.context = 'provider': the '{cfg.entropy.model}' entropy "
-                             f"model cannot read a provider's grid (the 'hac' model can)")
+                             f"model has no grid context to read a provider's grid with")
         return cls.build(cfg, model.coded_attributes(), model.n_offsets, model.n_anchors,
                          context_grid=grid)
     return cls.build(cfg, model.coded_attributes(), model.n_offsets, model.n_anchors)
