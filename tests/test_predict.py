@@ -495,8 +495,8 @@ def test_kept_share_probe_tool(small_scene, capsys):
 def test_a_grid_pass_is_shared_only_for_the_same_positions_and_tables():
     """``BinaryHashGrid.shared_query``: the same position tensor under the same tables gives
     the very same output (one pass for the SFP and an entropy context reading its grid); new
-    positions, an in-place change of the positions, another grad mode or a table update give a
-    fresh pass, equal to a direct query."""
+    positions, an in-place change of the positions or a table update give a fresh pass, equal
+    to a direct query; a pass without gradients is neither reused nor kept."""
     from baseline.hac.hashgrid import BinaryHashGrid
 
     torch.manual_seed(0)
@@ -507,9 +507,11 @@ def test_a_grid_pass_is_shared_only_for_the_same_positions_and_tables():
     assert grid.shared_query(xyz) is a and torch.equal(a, grid(xyz))
     b = grid.shared_query(xyz.clone())
     assert b is not a and torch.equal(b, a)
-    with torch.no_grad():
+    a = grid.shared_query(xyz)
+    with torch.no_grad():                  # without gradients: neither reused nor kept
         c = grid.shared_query(xyz)
-    assert c is not a and torch.equal(c, a)
+        assert grid.shared_query(xyz) is not c
+    assert c is not a and torch.equal(c, a) and grid.shared_query(xyz) is a
     with torch.no_grad():
         for g in grid.grids.values():
             g.params.mul_(-1.0)            # as an optimizer step would move the tables

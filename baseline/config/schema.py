@@ -311,9 +311,7 @@ def validate(cfg: Config) -> None:
     if not (dev in ("auto", "cpu", "cuda") or re.fullmatch(r"cuda:\d+", dev)):
         raise ConfigError(f"train.device must be auto, cpu, cuda or cuda:N, got '{dev}'")
     _one_of("entropy.mask_training", cfg.entropy.mask_training, registry.names("mask_training"))
-    if cfg.entropy.context not in ("own", "provider"):
-        raise ConfigError(f"entropy.context must be 'own' or 'provider', got "
-                          f"'{cfg.entropy.context}'")
+    _one_of("entropy.context", cfg.entropy.context, ("own", "provider"))
     if cfg.entropy.decoder_quant not in ("noise", "ste"):
         raise ConfigError(f"entropy.decoder_quant must be 'noise' or 'ste', got "
                           f"'{cfg.entropy.decoder_quant}'")

@@ -702,10 +702,13 @@ class BinaryHashGrid(nn.Module):
         query the same positions in one step (a feature provider and an entropy context
         reading the provider's grid, ``entropy.context = "provider"``) share the pass and its
         backward. The result is reused only for the very same ``xyz`` object, unmodified
-        (its version), under the same grad mode, while no table has changed (the optimizer's
-        in-place step bumps their versions; a load that swaps a table's storage moves its
-        address); otherwise it is computed anew. Holds one entry."""
-        key = (xyz._version, torch.is_grad_enabled(),
+        (its version), while no table has changed (the optimizer's in-place step bumps their
+        versions; a load that swaps a table's storage moves its address); otherwise it is
+        computed anew. Holds one entry, and only with gradients on (a training step): a pass
+        without them (evaluation, a decoded model's feature cache) is neither kept nor reused."""
+        if not torch.is_grad_enabled():
+            return self(xyz)
+        key = (xyz._version,
                tuple((g.params._version, g.params.data_ptr()) for g in self.grids.values()))
         memo = getattr(self, "_memo", None)
         if memo is not None and memo[0]() is xyz and memo[1] == key:
