@@ -21,12 +21,13 @@ class PredictConfig:
     # out of the config hash at that value (baseline.config.identity)
     LATER_KEYS: ClassVar[dict] = {"fusion_init": "zero", "grid_init": "random", "box": "extent",
                                   "box_quantile": 0.01, "residual_grow": "zero",
-                                  "corrections": "pre"}
+                                  "corrections": "pre", "mgrd_lr": "own"}
     # options only the SFP reads: left out of the hash of a config without it
     COMPONENT_KEYS: ClassVar[dict] = {"fusion_init": ("feature_provider", "sfp"),
                                       "grid_init": ("feature_provider", "sfp"),
                                       "residual_grow": ("feature_provider", "sfp"),
-                                      "corrections": ("refiner", "mgrd")}
+                                      "corrections": ("refiner", "mgrd"),
+                                      "mgrd_lr": ("refiner", "mgrd")}
 
     # Spatial Feature Pool (its own binary hash grid, HAC layout) + two-layer fusion MLP -> 50.
     fusion_hidden: int = 64            # choose: the paper gives two layers and the 50-dim output only
@@ -79,3 +80,8 @@ class PredictConfig:
     lr_fusion_final: float = 0.00004
     lr_mgrd_init: float = 0.004
     lr_mgrd_final: float = 0.00004
+    # the MGRD heads' learning rates (the paper gives none: "the same hyperparameter settings as
+    # HAC"): "own" = both heads lr_mgrd_init -> lr_mgrd_final over the whole schedule; "heads" =
+    # each head the schedule of the decoder head whose output it corrects, the shape head the
+    # cov head's (lr.mlp_cov, constant), the appearance head the colour head's (lr.mlp_color_*)
+    mgrd_lr: str = "own"

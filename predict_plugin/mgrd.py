@@ -42,6 +42,8 @@ class MGRD(Refiner):
         if p.corrections not in ("pre", "post"):
             raise ValueError(f"predict.corrections must be 'pre' or 'post', got '{p.corrections}'")
         self.post_activation = ("opacity", "color") if p.corrections == "post" else ()
+        if p.mgrd_lr not in ("own", "heads"):
+            raise ValueError(f"predict.mgrd_lr must be 'own' or 'heads', got '{p.mgrd_lr}'")
 
     def forward(self, idx, values, view_dir, dist):
         """values["residual"] [M,R], view_dir [M,3], dist [M,1] -> corrections:
@@ -61,5 +63,11 @@ class MGRD(Refiner):
 
     def param_groups(self, cfg):
         p = cfg.ext["predict"]
+        if p.mgrd_lr == "heads":     # each head at the schedule of the head it corrects
+            lr = cfg.lr
+            return [dict(name="mgrd_shape", params=list(self.shape_head.parameters()),
+                         lr_init=lr.mlp_cov, lr_final=lr.mlp_cov),
+                    dict(name="mgrd_appearance", params=list(self.appearance_head.parameters()),
+                         lr_init=lr.mlp_color_init, lr_final=lr.mlp_color_final)]
         return [dict(name="mgrd", params=list(self.parameters()), lr_init=p.lr_mgrd_init,
                      lr_final=p.lr_mgrd_final)]

@@ -169,6 +169,33 @@ def test_corrections_option_keeps_the_hash_of_configs_without_it():
         _pgs_cfg("predict.corrections=post"))
 
 
+def test_mgrd_lr_heads_gives_each_head_the_rate_of_the_head_it_corrects():
+    """predict.mgrd_lr = "heads" (patch mgrd-lr-heads): the shape head at the cov head's
+    schedule, the appearance head at the colour head's; "own" (default): one group at
+    lr_mgrd_*; the default keeps the config hash; a bad value is refused."""
+    from baseline.config import config_hash
+
+    own = _pgs_model(_pgs_cfg("model.voxel_size=0.2"))
+    cfg = build_config(["predict-gs", "mgrd-lr-heads"], ["model.voxel_size=0.2"])
+    heads = _pgs_model(cfg)
+    g_own = own.refiner.param_groups(own_cfg := _pgs_cfg("model.voxel_size=0.2"))
+    assert [g["name"] for g in g_own] == ["mgrd"]
+    assert (g_own[0]["lr_init"], g_own[0]["lr_final"]) == (own_cfg.ext["predict"].lr_mgrd_init,
+                                                           own_cfg.ext["predict"].lr_mgrd_final)
+    g = {x["name"]: x for x in heads.refiner.param_groups(cfg)}
+    assert set(g) == {"mgrd_shape", "mgrd_appearance"}
+    assert (g["mgrd_shape"]["lr_init"], g["mgrd_shape"]["lr_final"]) == (cfg.lr.mlp_cov,) * 2
+    assert (g["mgrd_appearance"]["lr_init"], g["mgrd_appearance"]["lr_final"]) == (
+        cfg.lr.mlp_color_init, cfg.lr.mlp_color_final)
+    ids = lambda ps: {id(p) for p in ps}                                       # noqa: E731
+    assert ids(g["mgrd_shape"]["params"]) == ids(heads.refiner.shape_head.parameters())
+    assert ids(g["mgrd_appearance"]["params"]) == ids(heads.refiner.appearance_head.parameters())
+    assert config_hash(_pgs_cfg()) == config_hash(_pgs_cfg("predict.mgrd_lr=own"))
+    assert config_hash(_pgs_cfg()) != config_hash(_pgs_cfg("predict.mgrd_lr=heads"))
+    with pytest.raises(ValueError, match="predict.mgrd_lr"):
+        _pgs_model(_pgs_cfg("model.voxel_size=0.2", "predict.mgrd_lr=decoder"))
+
+
 def test_stage_switch_and_resolution_hook():
     from predict_plugin.hooks import PredictStages
 
