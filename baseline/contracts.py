@@ -46,12 +46,16 @@ class CodedAttribute:
         masked: True when each value is gated by a Gaussian mask (offsets: K x 3 values, one
             mask per Gaussian, so a mask covers ``dims // n_masks`` consecutive values). Masked
             values whose Gaussian is off are neither coded nor counted.
+        noise_phase: False: training's noise phase (quantization noise before the rate starts)
+            leaves it exact; the rate's adaptive quantization reaches it as any other. Training
+            only, not stored in files.
     """
 
     name: str
     dims: int
     q0: float
     masked: bool = False
+    noise_phase: bool = True
 
 
 # The baseline's coded attributes for K = 10 offsets and a 50-dim feature (docs/method.md).

@@ -137,10 +137,11 @@ def render_view(model, cam: Camera, background: torch.Tensor, *, phase: str = "n
     attrs = {a.name: a for a in model.coded_attributes()}
     if phase == "noise":
         if training and decoder_quant == "ste":
-            values = {k: ste_round(v, attrs[k].q0, q0=attrs[k].q0) for k, v in values.items()}
+            values = {k: ste_round(v, attrs[k].q0, q0=attrs[k].q0) if attrs[k].noise_phase
+                      else v for k, v in values.items()}
         elif training:
             values = {k: v + (uniform(v.shape, generator, v.device) - 0.5) * attrs[k].q0
-                      for k, v in values.items()}
+                      if attrs[k].noise_phase else v for k, v in values.items()}
         else:
             values = {k: torch.round(v / attrs[k].q0) * attrs[k].q0 for k, v in values.items()}
     elif phase == "adaptive":

@@ -21,13 +21,15 @@ class PredictConfig:
     # out of the config hash at that value (baseline.config.identity)
     LATER_KEYS: ClassVar[dict] = {"fusion_init": "zero", "grid_init": "random", "box": "extent",
                                   "box_quantile": 0.01, "residual_grow": "zero",
-                                  "corrections": "pre", "mgrd_lr": "own"}
+                                  "corrections": "pre", "mgrd_lr": "own",
+                                  "residual_noise": "always"}
     # options only the SFP reads: left out of the hash of a config without it
     COMPONENT_KEYS: ClassVar[dict] = {"fusion_init": ("feature_provider", "sfp"),
                                       "grid_init": ("feature_provider", "sfp"),
                                       "residual_grow": ("feature_provider", "sfp"),
                                       "corrections": ("refiner", "mgrd"),
-                                      "mgrd_lr": ("refiner", "mgrd")}
+                                      "mgrd_lr": ("refiner", "mgrd"),
+                                      "residual_noise": ("feature_provider", "sfp")}
 
     # Spatial Feature Pool (its own binary hash grid, HAC layout) + two-layer fusion MLP -> 50.
     fusion_hidden: int = 64            # choose: the paper gives two layers and the 50-dim output only
@@ -58,6 +60,10 @@ class PredictConfig:
     # that the residual takes the place of
     residual_grow: str = "zero"
     residual_from: int = 5000          # stage 2 starts here (stage 1: SFP only)
+    # the residual in training's noise phase (the paper is silent; HAC adds U(-0.5, 0.5) x Q0
+    # to every coded value from 3k until the rate starts): "always" = as every coded value;
+    # "rate" = left exact until the rate starts (its adaptive quantization then reaches it)
+    residual_noise: str = "always"
     mgrd_hidden: int = 64              # choose: hidden width of each MGRD head
     # where MGRD's corrections enter (eq. 5 adds them to the coarse Gaussians' attributes):
     # "pre" = before every activation (refined opacity tanh(raw + d), colour sigmoid(raw + d),

@@ -102,6 +102,9 @@ class SpatialFeaturePool(FeatureProvider):
         if p.residual_grow not in RESIDUAL_GROW_RULES:
             raise ValueError(f"predict.residual_grow must be one of {sorted(RESIDUAL_GROW_RULES)}, "
                              f"got '{p.residual_grow}'")
+        if p.residual_noise not in ("always", "rate"):
+            raise ValueError(f"predict.residual_noise must be 'always' or 'rate', got "
+                             f"'{p.residual_noise}'")
         if self.use_residual:
             model.add_per_anchor("residual", torch.zeros(model.n_anchors, p.residual_dim),
                                  RESIDUAL_GROW_RULES[p.residual_grow])
@@ -123,7 +126,8 @@ class SpatialFeaturePool(FeatureProvider):
     def coded_attributes(self):
         attrs = []
         if self.use_residual:
-            attrs.append(CodedAttribute("residual", self.pcfg.residual_dim, 1.0))
+            attrs.append(CodedAttribute("residual", self.pcfg.residual_dim, 1.0,
+                                        noise_phase=self.pcfg.residual_noise == "always"))
         attrs += [CodedAttribute("scaling", 6, 0.001),
                   CodedAttribute("offsets", 3 * self.n_offsets, 0.2, masked=True)]
         return tuple(attrs)

@@ -196,6 +196,46 @@ def test_mgrd_lr_heads_gives_each_head_the_rate_of_the_head_it_corrects():
         _pgs_model(_pgs_cfg("model.voxel_size=0.2", "predict.mgrd_lr=decoder"))
 
 
+def test_residual_noise_rate_leaves_the_residual_exact_in_the_noise_phase(monkeypatch):
+    """predict.residual_noise = "rate" (patch residual-noise-rate): training's noise phase adds
+    U(-0.5, 0.5) x Q0 to scaling and offsets but not to the residual; "always" (default) to
+    all; the default keeps the config hash; a bad value is refused."""
+    from baseline.camera import Camera
+    from baseline.config import config_hash
+    from baseline.pipeline import render_view
+
+    vm = torch.eye(4)
+    vm[2, 3] = 4.0                       # the anchors in [-1, 1]^3 lie 3-5 units in front
+    cam = Camera(viewmat=vm, fx=40.0, fy=40.0, cx=32.0, cy=24.0, width=64, height=48,
+                 near=0.2, far=100.0)
+    for mode, residual_noised in (("always", True), ("rate", False)):
+        model = _pgs_model(_pgs_cfg("model.voxel_size=0.2", f"predict.residual_noise={mode}"))
+        with torch.no_grad():
+            model.per_anchor["residual"].normal_()
+        seen = {}
+        decode = model.decode
+
+        def spy(cam_center, idx, values=None, **kw):
+            seen.update(idx=idx, values={k: v.detach().clone() for k, v in values.items()})
+            return decode(cam_center, idx, values, **kw)
+
+        monkeypatch.setattr(model, "decode", spy)
+        render_view(model, cam, torch.zeros(3), phase="noise", training=True,
+                    generator=torch.Generator().manual_seed(0))
+        raw = model.coded_values(seen["idx"])
+        assert len(seen["idx"]) > 0
+        for k in ("scaling", "offsets"):
+            assert not torch.equal(seen["values"][k], raw[k].detach()), k
+        assert torch.equal(seen["values"]["residual"], raw["residual"].detach()) != \
+            residual_noised
+    assert config_hash(_pgs_cfg()) == config_hash(_pgs_cfg("predict.residual_noise=always"))
+    assert config_hash(_pgs_cfg()) != config_hash(_pgs_cfg("predict.residual_noise=rate"))
+    assert config_hash(build_config(["predict-gs", "residual-noise-rate"], [])) == config_hash(
+        _pgs_cfg("predict.residual_noise=rate"))
+    with pytest.raises(ValueError, match="predict.residual_noise"):
+        _pgs_model(_pgs_cfg("model.voxel_size=0.2", "predict.residual_noise=never"))
+
+
 def test_stage_switch_and_resolution_hook():
     from predict_plugin.hooks import PredictStages
 
