@@ -14,10 +14,11 @@ added last; ``--order`` checks that on this machine), so its values equal the fu
 bit for bit, with no gather: it shows what an exact kept-only layer costs without SIMD.
 
 Per run (a folder with model.pgs, or a .pgs file) this decodes and bakes the model
-(:class:`~baseline.scaffold.baked.BakedDecoder`) and, on its test views, times both forms
-of the cov + color second layers in one process (order swapped every round, a warm-up round
-untimed) and checks they give the same values. Prints ms per view of each form, their ratio
-(> 1: the kept-only form is faster), the candidates and the kept Gaussians per view.
+(:class:`~baseline.scaffold.baked.BakedDecoder`) and, on its test views, times the three
+forms of the cov + color second layers in one process (order reversed every round, a warm-up
+round untimed), checks the grouped form gives the same values within 1e-4 and says whether the
+exact form gives them bit for bit. Prints ms per view of each form, their ratios to the full
+layer (> 1: the kept-only form is faster), the candidates and the kept Gaussians per view.
 """
 from __future__ import annotations
 
