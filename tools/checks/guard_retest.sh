@@ -3,7 +3,7 @@
 # lines it prints and its exit status (PGS=path/to/pgs to choose the executable).
 set -u
 P="${PGS:-pgs}"
-W=$(mktemp -d /tmp/retest46.XXXX)
+W=$(mktemp -d /tmp/guard-retest.XXXX)
 cd "$W"
 run() { echo "\$ $*"; out=$("$@" 2>&1); rc=$?; echo "$out" | tail -n 2 | sed 's/^/  | /'; echo "  exit $rc"; }
 T="--set train.iterations=30 --set train.threads=1 --set train.log_every=1000 --no-progress"

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The GPU checks in one call, for a GPU machine without network that receives only the
+# The GPU checks in one script, for a GPU machine without network that receives only the
 # repository (see README, "GPU checks on a machine without network").
 #
 # Prepared here, in git-ignored .carry/ (listed in .git/info/exclude):

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# A second, shorter device call after tools/gpu/device_check.sh: rebuild gsplat on the fresh machine,
+# A second, shorter run after tools/gpu/device_check.sh: rebuild gsplat on a fresh machine,
 # rerun the gsplat tests, then the suite from FIRST_FILE on, capped at SECONDS.
 # Run there:  bash tools/gpu/device_rerun.sh FIRST_FILE SECONDS
 set -uo pipefail

@@ -11,7 +11,7 @@
 #                        both machines train on the same pixels
 # Run there:  bash tools/gpu/device_truck.sh [DEADLINE_S] [ITERATIONS]
 # (the comparison is stopped DEADLINE_S seconds after the script started, default 560)
-# Resumable: a second call on the same (warm) machine continues the comparison in /tmp/truck-gpu.
+# Resumable: a second run on the same machine continues the comparison in /tmp/truck-gpu.
 set -uo pipefail
 DEADLINE_S=${1:-560}
 start=$(date +%s)
@@ -38,7 +38,7 @@ timeout "$TRAIN_S" python3 -m baseline.cli compare "$S" -r 4 --patch cpu \
     --vs predict-gs --lambda 0.004 --seeds 0 --out "$W" --no-progress --no-plots \
     >>"$OUT/compare.log" 2>&1
 rc=$?
-stamp "compare rc=$rc (124 = stopped at ${TRAIN_S} s; a second call resumes it)"
+stamp "compare rc=$rc (124 = stopped at ${TRAIN_S} s; a second run resumes it)"
 tail -4 "$OUT/compare.log"
 # each run's training log (time per iteration), whether or not the run finished
 for d in "$W"/runs/*/; do
