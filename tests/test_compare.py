@@ -360,6 +360,7 @@ def test_archived_records_are_reported_without_retraining(scene, tmp_path):
     assert [p.name for p in kept] == [first["runs"][0]["run_dir"].split("/")[-1]]
     assert sorted(f.name for f in kept[0].iterdir()) == sorted(RECORD_FILES)
     assert (arch / "report.md").exists() and (arch / "results.json").exists()
+    assert (arch / "results.csv").read_text() == (out / "results.csv").read_text()
     specs = plan_runs(arch, parse_methods(["entropy-factorized"]), None, ["demo"], SETS)
     assert is_finished(specs[0]) and not is_finished(specs[1])
     # --report-only: the archived run is reported, the missing one listed and not started

@@ -238,6 +238,7 @@ def archive_records(out: str | Path, dest: str | Path,
     """Copy the records of the finished runs of comparison ``out`` (and its report, results
     and plots) to ``dest``: a few KB per run, no checkpoints or model files. Copied into another
     comparison's ``--out`` folder they are reported as finished (see :func:`records_only`).
+    The top level's report, results (JSON and CSV) and plots are copied with them.
     ``results``: the dict :func:`run_compare` returned; when given, only the runs it reports
     (and its reference) are kept, not other comparisons' runs that share ``out``.
     ``dest`` is checked as ``--out`` is (:func:`baseline.guard.check_output`): new, empty, or
@@ -270,7 +271,7 @@ def archive_records(out: str | Path, dest: str | Path,
             shutil.copy2(run / name, dest / "runs" / run.name / name)
         done.append(dest / "runs" / run.name)
     for f in out.iterdir() if out.is_dir() else []:
-        if f.is_file() and f.suffix in (".md", ".json", ".png"):
+        if f.is_file() and f.suffix in (".md", ".json", ".png", ".csv"):
             dest.mkdir(parents=True, exist_ok=True)
             shutil.copy2(f, dest / f.name)
     return done
