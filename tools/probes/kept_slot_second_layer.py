@@ -108,21 +108,34 @@ def _exact_rows(hid, keep, K, wt, bias, out):  # pragma: no cover - numba
             out[g1, c] = t1[c] + bias[s1, c]
 
 
-def exact_form(baked: BakedDecoder, hid, keep, K):
-    """The kept Gaussians' cov and color pre-activations by :func:`_exact_rows`."""
+def _kernel_form(baked: BakedDecoder, hid, keep, K, kernel, layout):
+    """The kept Gaussians' cov and color pre-activations by a numba ``kernel``; ``layout(W, b,
+    width, C)`` turns a second layer's weight [width, K, C] and bias [K, C] into the kernel's
+    weight and bias arrays."""
     outs = []
     for attr, C in (("cov", 7), ("color", 3)):
         s = baked.second[attr]
         h = hid[:, s.lo:s.hi].contiguous()
-        wt = torch.zeros(K, h.shape[1], 8)
-        wt[..., :C] = s.weight.view(-1, K, C).permute(1, 0, 2)
-        b = torch.zeros(K, 8)
-        b[:, :C] = s.bias.view(K, C)
+        w, b = layout(s.weight.view(-1, K, C), s.bias.view(K, C), h.shape[1], C)
         out = torch.empty(len(keep), C)
         if len(keep):
-            _exact_rows(h.numpy(), keep.numpy(), K, wt.numpy(), b.numpy(), out.numpy())
+            kernel(h.numpy(), keep.numpy(), K, w.numpy(), b.numpy(), out.numpy())
         outs.append(out)
     return tuple(outs)
+
+
+def _padded_layout(W, b, width, C):
+    """[K, width, 8] and [K, 8], zero-padded: the layout of :func:`_exact_rows`."""
+    K = b.shape[0]
+    wt, bt = torch.zeros(K, width, 8), torch.zeros(K, 8)
+    wt[..., :C] = W.permute(1, 0, 2)
+    bt[:, :C] = b
+    return wt, bt
+
+
+def exact_form(baked: BakedDecoder, hid, keep, K):
+    """The kept Gaussians' cov and color pre-activations by :func:`_exact_rows`."""
+    return _kernel_form(baked, hid, keep, K, _exact_rows, _padded_layout)
 
 
 @njit(cache=True, fastmath=True, error_model="numpy")
@@ -142,17 +155,8 @@ def _reassociated_rows(hid, keep, K, w, bias, out):  # pragma: no cover - numba
 
 def reassociated_form(baked: BakedDecoder, hid, keep, K):
     """The kept Gaussians' cov and color pre-activations by :func:`_reassociated_rows`."""
-    outs = []
-    for attr, C in (("cov", 7), ("color", 3)):
-        s = baked.second[attr]
-        h = hid[:, s.lo:s.hi].contiguous()
-        w = s.weight.view(-1, K, C).permute(1, 2, 0).contiguous()      # [K, C, width]
-        out = torch.empty(len(keep), C)
-        if len(keep):
-            _reassociated_rows(h.numpy(), keep.numpy(), K, w.numpy(),
-                               s.bias.view(K, C).contiguous().numpy(), out.numpy())
-        outs.append(out)
-    return tuple(outs)
+    return _kernel_form(baked, hid, keep, K, _reassociated_rows,
+                        lambda W, b, width, C: (W.permute(1, 2, 0).contiguous(), b.contiguous()))
 
 
 def gemm_order() -> str:
@@ -170,6 +174,10 @@ def gemm_order() -> str:
     chain = acc + b.numpy()[None, :]
     same = int((chain == full).sum())
     return f"addmm vs in-order FMA chain, bias last: {same} of {full.size} outputs equal"
+
+
+FORMS = {"all": full_form, "kept": kept_form, "exact": exact_form,
+         "reassociated": reassociated_form}
 
 
 def main() -> None:
@@ -198,7 +206,7 @@ def main() -> None:
                 _, hid = baked.hidden(cam.center, idx)
                 keep = baked.kept(hid, idx)[1].nonzero()[:, 0]
                 inputs.append((hid, keep))
-            forms_all = ("all", "kept", "exact", "reassociated")
+            forms_all = tuple(FORMS)
             t = {f: [0.0] * a.rounds for f in forms_all}
             exact_equal, reassoc_diff = True, 0.0
             for r in range(-1, a.rounds):
@@ -206,10 +214,8 @@ def main() -> None:
                 for hid, keep in inputs:
                     res = {}
                     for f in forms:
-                        fn = {"all": full_form, "kept": kept_form, "exact": exact_form,
-                              "reassociated": reassociated_form}[f]
                         t0 = time.perf_counter()
-                        res[f] = fn(baked, hid, keep, K)
+                        res[f] = FORMS[f](baked, hid, keep, K)
                         if r >= 0:
                             t[f][r] += (time.perf_counter() - t0) / len(inputs)
                     for x, y in zip(res["all"], res["kept"]):
