@@ -98,8 +98,49 @@ def test_pgs_curves_compares_runs_and_leaves_a_running_ones_later_spans_empty(tm
     assert main(["curves", str(a), str(b), "--windows", "3"]) == 0
     out = capsys.readouterr().out
     assert "L1 it 1-20" in out and "L1 it 41-60" in out           # spans of the configured schedule
-    rows = {ln.split()[0]: ln.split()[1:] for ln in out.splitlines() if ln.startswith(("a ", "b "))}
+    l1_table = out.split("Anchors and Gaussians")[0]
+    rows = {ln.split()[0]: ln.split()[1:] for ln in l1_table.splitlines() if ln.startswith(("a ", "b "))}
     assert rows["a"] == ["0.0150", "0.0350", "0.0550", "258.0"]     # 3 bits x 86 values
     assert rows["b"] == ["0.0180", "(+20.0%)", "0.0420", "(+20.0%)", "-", "-"]
     assert main(["curves", str(tmp_path)]) == 2                     # no log: a clear error
     assert "no training log" in capsys.readouterr().err
+
+
+def test_summarize_over_given_span_ends():
+    from baseline.eval.report.curves import span_bounds
+
+    s = summarize(_log(range(10, 601, 10), bits_from=400), iterations=600, ends=[100, 400, 450])
+    assert s["bounds"] == [0, 100, 400, 450] and s["iterations"] == 450
+    assert s["l1"][1] == pytest.approx(0.255)                 # it 110..400
+    assert s["anchors"] == [101, 401, 451]
+    assert s["bits_per_value"] == [None, None, 3.0]
+    for bad in ([], [0, 10], [20, 10], [10, 10]):
+        with pytest.raises(ValueError, match="increasing"):
+            span_bounds(bad)
+
+
+def test_pgs_curves_at_span_ends_prints_growth_and_reads_an_archived_record(tmp_path, capsys):
+    from baseline.cli import main
+
+    a = _run_dir(tmp_path / "a", range(10, 61, 10), attrs_dims=[50, 6, 30])
+    assert main(["curves", str(a), "--at", "20", "60"]) == 0
+    out = capsys.readouterr().out
+    assert "L1 it 1-20" in out and "L1 it 21-60" in out and "Anchors and Gaussians" in out
+    row = [ln for ln in out.splitlines() if ln.startswith("a ")][-1].split()
+    # anchors at it 20 (21) and 60 (61); Gaussians 2 x it, means 30 and 80
+    assert row[1:] == ["0.0k", "/", "0.0k", "0.1k", "/", "0.1k"]
+    # an archived run: no log, its record's spans
+    b = tmp_path / "b"
+    b.mkdir()
+    (b / "compare.json").write_text(json.dumps({"train_curve": {
+        "iterations": 60, "bounds": [0, 30, 60], "l1": [0.5, 0.25], "bits_per_value": [None, 2.0],
+        "gaussians": [1500.0, 2500.0], "anchors": [1200, 3400]}}))
+    assert main(["curves", str(b), "--windows", "2"]) == 0
+    out = capsys.readouterr().out
+    assert "0.5000" in out and "1.2k / 1.5k" in out and "3.4k / 2.5k" in out
+    assert main(["curves", str(b), "--at", "30", "60"]) == 0
+    capsys.readouterr()
+    assert main(["curves", str(b)]) == 2                     # 6 spans asked, 2 stored
+    assert "holds only the spans ending at 30 60 (--windows 2)" in capsys.readouterr().err
+    assert main(["curves", str(a), "--at", "20", "10"]) == 2
+    assert "increasing" in capsys.readouterr().err

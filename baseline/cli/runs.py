@@ -119,7 +119,7 @@ def cmd_census(args) -> int:
 def cmd_curves(args) -> int:
     from baseline.eval.report.curves import format_curves
 
-    print(format_curves(args.runs, windows=args.windows))
+    print(format_curves(args.runs, windows=args.windows, ends=args.at))
     return 0
 
 
@@ -185,7 +185,11 @@ def add_parsers(sub) -> None:
                        "training L1 per span of the schedule and the rate's bits per anchor, "
                        "from the runs' training logs")
     p.add_argument("runs", nargs="+", help="run folders; from the second on, changes vs the first")
-    p.add_argument("--windows", type=int, default=6, help="equal spans of the schedule (default 6)")
+    p.add_argument("--windows", type=_positive_int, default=6,
+                   help="equal spans of the schedule (default 6)")
+    p.add_argument("--at", type=_positive_int, nargs="+", default=None, metavar="IT",
+                   help="span ends in iterations instead of equal spans (e.g. the stage "
+                        "switches: --at 1000 3000 5000 10000 15000)")
     p.set_defaults(fn=cmd_curves)
 
     p = sub.add_parser("quant-cost", help="PSNR of a trained run with each coded attribute raw, "

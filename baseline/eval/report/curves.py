@@ -42,17 +42,31 @@ def read_log(path: str | Path) -> list[dict]:
     return out
 
 
+def span_bounds(ends: list[int]) -> list[int]:
+    """The bounds of spans ending at the iterations ``ends`` (strictly increasing, positive),
+    the first starting at 0."""
+    ends = [int(e) for e in ends]
+    if not ends or ends[0] < 1 or any(b <= a for a, b in zip(ends, ends[1:])):
+        raise ValueError(f"span ends must be positive and increasing, got {ends}")
+    return [0] + ends
+
+
 def summarize(entries: list[dict], iterations: Optional[int] = None,
-              windows: int = WINDOWS) -> Optional[dict]:
+              windows: int = WINDOWS, ends: Optional[list[int]] = None) -> Optional[dict]:
     """The windowed summary of log ``entries`` over ``[0, iterations]`` (default: the last
-    logged iteration). None when the log is empty. Lists hold one value per window, None for a
-    window with nothing logged (or, for ``bits_per_value``, before the rate term is on)."""
+    logged iteration), or over the spans ending at ``ends`` when given. None when the log is
+    empty. Lists hold one value per window, None for a window with nothing logged (or, for
+    ``bits_per_value``, before the rate term is on)."""
     if windows < 1:
         raise ValueError(f"windows must be >= 1, got {windows}")
     if not entries:
         return None
-    total = int(iterations) if iterations else max(int(e["it"]) for e in entries)
-    bounds = [round(total * k / windows) for k in range(windows + 1)]
+    if ends:
+        bounds = span_bounds(ends)
+        total = bounds[-1]
+    else:
+        total = int(iterations) if iterations else max(int(e["it"]) for e in entries)
+        bounds = [round(total * k / windows) for k in range(windows + 1)]
     out = {"iterations": total, "bounds": bounds, "l1": [], "bits_per_value": [],
            "gaussians": [], "anchors": []}
     for lo, hi in zip(bounds[:-1], bounds[1:]):
@@ -66,16 +80,28 @@ def summarize(entries: list[dict], iterations: Optional[int] = None,
 
 
 def train_curve(run_dir: str | Path, iterations: Optional[int] = None,
-                windows: int = WINDOWS) -> Optional[dict]:
+                windows: int = WINDOWS, ends: Optional[list[int]] = None) -> Optional[dict]:
     """:func:`summarize` of the run's ``train_log.jsonl`` over ``iterations`` (default: the
-    run's configured schedule, so a run still training shows its later spans empty); None
-    without a log."""
+    run's configured schedule, so a run still training shows its later spans empty) or the
+    spans ending at ``ends``; None without a log."""
     from baseline.train.trainer import TRAIN_LOG_NAME
 
     path = Path(run_dir) / TRAIN_LOG_NAME
     if not path.is_file():
         return None
-    return summarize(read_log(path), iterations or _schedule(run_dir), windows)
+    return summarize(read_log(path), iterations or _schedule(run_dir), windows, ends)
+
+
+def recorded_curve(run_dir: str | Path) -> Optional[dict]:
+    """The summary a comparison stored in the run's record (``compare.json``), which archived
+    runs keep without their log; None when there is none."""
+    from baseline.fileio import read_text_bounded
+
+    try:
+        c = json.loads(read_text_bounded(Path(run_dir) / "compare.json", "a run's record"))["train_curve"]
+        return c if isinstance(c, dict) and c.get("bounds") else None
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
 
 
 def _schedule(run_dir: str | Path) -> Optional[int]:
@@ -149,20 +175,56 @@ def values_per_anchor(run_dir: str | Path) -> Optional[int]:
     return rate_elements(row) or None
 
 
-def format_curves(runs: list[str | Path], windows: int = WINDOWS) -> str:
-    """``pgs curves``: the curves of run folders as a table, the first run as the reference."""
+def _curve_of(run: str | Path, windows: int, ends: Optional[list[int]]) -> dict:
+    """A run folder's curve from its log, or else from its record when the record's spans are
+    the ones asked for (``windows`` equal spans of the schedule, or the spans ending at
+    ``ends``); ValueError naming what is missing otherwise."""
+    c = train_curve(run, None, windows, ends)
+    if c is not None:
+        return c
+    rec = recorded_curve(run)
+    if rec is None:
+        raise ValueError(f"{run}: no training log (train_log.jsonl) in this folder")
+    b = rec["bounds"]
+    if (b == span_bounds(ends)) if ends else len(b) == windows + 1:
+        return rec
+    raise ValueError(f"{run}: no training log (train_log.jsonl) in this folder, and its record "
+                     f"holds only the spans ending at {' '.join(str(x) for x in b[1:])} "
+                     f"(--windows {len(b) - 1})")
+
+
+def _growth_cell(c: dict, k: int) -> str:
+    a, g = c["anchors"][k], c["gaussians"][k]
+    if a is None and g is None:
+        return "-"
+    return f"{'-' if a is None else f'{a / 1e3:.1f}k'} / {'-' if g is None else f'{g / 1e3:.1f}k'}"
+
+
+def format_curves(runs: list[str | Path], windows: int = WINDOWS,
+                  ends: Optional[list[int]] = None) -> str:
+    """``pgs curves``: the curves of run folders as tables (training L1 and the rate's bits;
+    anchors and Gaussians drawn), the first run as the reference; ``ends``: span ends in
+    iterations instead of ``windows`` equal spans of each schedule."""
 
     items = []
     for r in runs:
-        c = train_curve(r, None, windows)
-        if c is None:
-            raise ValueError(f"{r}: no training log (train_log.jsonl) in this folder")
-        items.append((Path(r).name, c, values_per_anchor(r)))
+        items.append((Path(r).name, _curve_of(r, windows, ends), values_per_anchor(r)))
     ref = items[0]
     rows = [[name] + curve_cells(c, e, None if i == 0 else ref[1], ref[2])
             for i, (name, c, e) in enumerate(items)]
-    notes = [f"The mean L1 of the sampled training views over each of {windows} equal spans of "
-             "each run's schedule, and the rate term's sampled bits per anchor over the last span "
-             f"('-' where not recorded); in brackets the change vs {ref[0]}."]
-    return Table("Training curves", ["run"] + span_headers([c for _, c, _ in items])
-                 + ["bits/anchor, last span"], rows, notes).text()
+    spans = (f"each span ending at {', '.join(str(x) for x in ends)}" if ends
+             else f"each of {windows} equal spans of each run's schedule")
+    notes = [f"The mean L1 of the sampled training views over {spans}, and the rate term's "
+             "sampled bits per anchor over the last span ('-' where not recorded); in brackets "
+             f"the change vs {ref[0]}."]
+    curves = [c for _, c, _ in items]
+    l1 = Table("Training curves", ["run"] + span_headers(curves) + ["bits/anchor, last span"],
+               rows, notes).text()
+    heads = [h.replace("L1 ", "") for h in span_headers(curves)]
+    growth = Table("Anchors and Gaussians", ["run"] + heads,
+                   [[name] + [_growth_cell(c, k) for k in range(len(c["anchors"]))]
+                    for name, c, _ in items],
+                   ["Each span: the anchors at its last logged step / the mean neural Gaussians "
+                    "drawn per sampled training view (a progressive schedule's early views are "
+                    "downsampled)."]).text()
+    return l1 + "\n" + growth
