@@ -142,5 +142,8 @@ def test_pgs_curves_at_span_ends_prints_growth_and_reads_an_archived_record(tmp_
     capsys.readouterr()
     assert main(["curves", str(b)]) == 2                     # 6 spans asked, 2 stored
     assert "holds only the spans ending at 30 60 (--windows 2)" in capsys.readouterr().err
+    (b / "compare.json").write_text(json.dumps({"train_curve": {"bounds": [0, 30, 60], "l1": [0.5]}}))
+    assert main(["curves", str(b), "--windows", "2"]) == 2   # a torn record: no curve
+    assert "no training log" in capsys.readouterr().err
     assert main(["curves", str(a), "--at", "20", "10"]) == 2
     assert "increasing" in capsys.readouterr().err

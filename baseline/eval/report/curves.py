@@ -99,9 +99,12 @@ def recorded_curve(run_dir: str | Path) -> Optional[dict]:
 
     try:
         c = json.loads(read_text_bounded(Path(run_dir) / "compare.json", "a run's record"))["train_curve"]
-        return c if isinstance(c, dict) and c.get("bounds") else None
+        n = len(c["bounds"]) - 1
+        if n >= 1 and all(len(c[k]) == n for k in ("l1", "bits_per_value", "gaussians", "anchors")):
+            return c
     except (OSError, ValueError, KeyError, TypeError):
-        return None
+        pass
+    return None
 
 
 def _schedule(run_dir: str | Path) -> Optional[int]:
