@@ -123,12 +123,17 @@ def test_pgs_curves_at_span_ends_prints_growth_and_reads_an_archived_record(tmp_
     from baseline.cli import main
 
     a = _run_dir(tmp_path / "a", range(10, 61, 10), attrs_dims=[50, 6, 30])
+    log = _log(range(10, 61, 10))
+    for d in log:                       # counts in the thousands, as the table prints them
+        d["anchors"], d["gaussians"] = 100 * d["it"] + 50, 200 * d["it"]
+    (a / "train_log.jsonl").write_text("".join(json.dumps(d) + "\n" for d in log))
     assert main(["curves", str(a), "--at", "20", "60"]) == 0
     out = capsys.readouterr().out
     assert "L1 it 1-20" in out and "L1 it 21-60" in out and "Anchors and Gaussians" in out
+    assert "it 1-20" in out.split("Anchors and Gaussians")[1]      # spans without "L1"
     row = [ln for ln in out.splitlines() if ln.startswith("a ")][-1].split()
-    # anchors at it 20 (21) and 60 (61); Gaussians 2 x it, means 30 and 80
-    assert row[1:] == ["0.0k", "/", "0.0k", "0.1k", "/", "0.1k"]
+    # anchors at it 20 (2,050) and 60 (6,050); Gaussians 200 x it, span means 3,000 and 9,000
+    assert row[1:] == ["2.0k", "/", "3.0k", "6.0k", "/", "9.0k"]
     # an archived run: no log, its record's spans
     b = tmp_path / "b"
     b.mkdir()

@@ -92,13 +92,22 @@ def train_curve(run_dir: str | Path, iterations: Optional[int] = None,
     return summarize(read_log(path), iterations or _schedule(run_dir), windows, ends)
 
 
+def _record(run_dir: str | Path) -> dict:
+    """The run's comparison record (``compare.json``); {} when it is missing or unreadable."""
+    from baseline.fileio import read_json_bounded
+
+    try:
+        rec = read_json_bounded(Path(run_dir) / "compare.json", "a run's record")
+    except (OSError, ValueError):
+        return {}
+    return rec if isinstance(rec, dict) else {}
+
+
 def recorded_curve(run_dir: str | Path) -> Optional[dict]:
     """The summary a comparison stored in the run's record (``compare.json``), which archived
     runs keep without their log; None when there is none."""
-    from baseline.fileio import read_text_bounded
-
     try:
-        c = json.loads(read_text_bounded(Path(run_dir) / "compare.json", "a run's record"))["train_curve"]
+        c = _record(run_dir)["train_curve"]
         n = len(c["bounds"]) - 1
         if n >= 1 and all(len(c[k]) == n for k in ("l1", "bits_per_value", "gaussians", "anchors")):
             return c
@@ -128,13 +137,14 @@ def _cell(v: Optional[float], ref: Optional[float], nd: int) -> str:
     return f"{v:.{nd}f}" if ch is None else f"{v:.{nd}f} ({_pct(ch)})"
 
 
-def span_headers(curves: list[dict]) -> list[str]:
-    """Column heads of the L1 spans: iteration ranges when every curve has the same bounds."""
+def span_headers(curves: list[dict], prefix: str = "L1 ") -> list[str]:
+    """Column heads of the spans (``prefix`` before each): iteration ranges when every curve has
+    the same bounds."""
     n = len(curves[0]["l1"])
     b = curves[0]["bounds"]
     if all(c["bounds"] == b for c in curves):
-        return [f"L1 it {b[k] + 1}-{b[k + 1]}" for k in range(n)]
-    return [f"L1 {k + 1}/{n} of the schedule" for k in range(n)]
+        return [f"{prefix}it {b[k] + 1}-{b[k + 1]}" for k in range(n)]
+    return [f"{prefix}{k + 1}/{n} of the schedule" for k in range(n)]
 
 
 def curve_cells(curve: dict, values_per_anchor: Optional[int], ref: Optional[dict] = None,
@@ -171,9 +181,8 @@ def values_per_anchor(run_dir: str | Path) -> Optional[int]:
     except (OSError, ValueError, TypeError):
         pass
     try:
-        row["attributes"] = json.loads(read_text_bounded(run_dir / "compare.json", "a run's record")
-                                       )["encode"]["attributes"]
-    except (OSError, ValueError, KeyError, TypeError):
+        row["attributes"] = _record(run_dir)["encode"]["attributes"]
+    except (KeyError, TypeError):
         pass
     return rate_elements(row) or None
 
@@ -197,10 +206,11 @@ def _curve_of(run: str | Path, windows: int, ends: Optional[list[int]]) -> dict:
 
 
 def _growth_cell(c: dict, k: int) -> str:
+    """'anchors / Gaussians' of span k in thousands ('-' for what was not logged)."""
     a, g = c["anchors"][k], c["gaussians"][k]
     if a is None and g is None:
         return "-"
-    return f"{'-' if a is None else f'{a / 1e3:.1f}k'} / {'-' if g is None else f'{g / 1e3:.1f}k'}"
+    return " / ".join("-" if v is None else f"{v / 1e3:.1f}k" for v in (a, g))
 
 
 def format_curves(runs: list[str | Path], windows: int = WINDOWS,
@@ -223,8 +233,7 @@ def format_curves(runs: list[str | Path], windows: int = WINDOWS,
     curves = [c for _, c, _ in items]
     l1 = Table("Training curves", ["run"] + span_headers(curves) + ["bits/anchor, last span"],
                rows, notes).text()
-    heads = [h.replace("L1 ", "") for h in span_headers(curves)]
-    growth = Table("Anchors and Gaussians", ["run"] + heads,
+    growth = Table("Anchors and Gaussians", ["run"] + span_headers(curves, prefix=""),
                    [[name] + [_growth_cell(c, k) for k in range(len(c["anchors"]))]
                     for name, c, _ in items],
                    ["Each span: the anchors at its last logged step / the mean neural Gaussians "
