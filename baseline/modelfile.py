@@ -151,7 +151,8 @@ def encode_model(cfg, model, entropy, path: str | Path, extra_header: Optional[d
     idx = valid.nonzero()[:, 0]
     N = int(len(idx))
     xyz = model.xyz.detach()[idx]
-    lo, hi = anchor_bounds(xyz.cpu().numpy())
+    # a run trained at its 16-bit positions stores those: its box, not the coded anchors'
+    lo, hi = model.position_box or anchor_bounds(xyz.cpu().numpy())
     q = quantize_positions(xyz.cpu().numpy(), lo, hi)
     coding = cfg.codec.positions
     if coding == "sorted":        # the anchors are coded in the order the positions decode in

@@ -35,9 +35,12 @@ class ViewResult:
     valid_share: float = 1.0
 
 
-def quantized_positions(xyz: torch.Tensor, coded: torch.Tensor, coding: str = "raw16") -> torch.Tensor:
+def quantized_positions(xyz: torch.Tensor, coded: torch.Tensor, coding: str = "raw16",
+                        box: Optional[tuple] = None) -> torch.Tensor:
     """[N,3] positions after the codec's 16-bit quantization (HAC's widened anchor bounds);
     ``coding`` "lattice" stores them exactly (the voxel-lattice coordinates): unchanged.
+    ``box``: the model's :attr:`~baseline.scaffold.model.AnchorModel.position_box` (a run
+    trained at its 16-bit positions), which the encoder then uses; None: the coded anchors'.
 
     ``coded`` [N] bool, required (no all-anchors default: that was the bug): the anchors the
     encoder writes (``model.anchor_valid()``); the bounds come from those alone, as in the file,
@@ -51,7 +54,7 @@ def quantized_positions(xyz: torch.Tensor, coded: torch.Tensor, coding: str = "r
     if coding == "lattice":
         return xyz.detach().clone()
     x = xyz.detach().cpu()
-    lo, hi = anchor_bounds(x[coded.cpu()].numpy())
+    lo, hi = box if box is not None else anchor_bounds(x[coded.cpu()].numpy())
     q = quantize_positions(x.numpy(), lo, hi)
     return torch.from_numpy(dequantize_positions(q, lo, hi)).to(xyz.device)
 
@@ -74,7 +77,7 @@ def coded_state(model, entropy, positions: str = "raw16") -> CodedState:
     position coding, ``codec.positions``)."""
     valid = model.anchor_valid()
     index = valid.nonzero()[:, 0]
-    xyz = quantized_positions(model.xyz, valid, positions)[index]
+    xyz = quantized_positions(model.xyz, valid, positions, model.position_box)[index]
     hard = (model.gaussian_mask(index).detach() > 0).float()
     values = entropy.quantize_for_coding(xyz, model.coded_values(index), hard)
     return CodedState(index=index, xyz=xyz, values=values)
@@ -84,7 +87,7 @@ def visible_anchors(model, cam: Camera) -> torch.Tensor:
     """[M] indices of the anchors that pass the prefilter for ``cam``."""
     with torch.no_grad():
         scales = torch.exp(model.per_anchor["scaling"].detach()[:, :3])
-        vis = prefilter_anchors(model.xyz.detach(), scales, cam)
+        vis = prefilter_anchors(model.positions().detach(), scales, cam)
     return vis.nonzero()[:, 0]
 
 
@@ -130,7 +133,7 @@ def render_view(model, cam: Camera, background: torch.Tensor, *, phase: str = "n
                         background=background, backend=backend)
         return ViewResult(render=out, gaussians=g, camera=cam, bits={}, n_rate_anchors=0)
     values = model.coded_values(idx)
-    xyz = model.xyz[idx]
+    xyz = model.positions(idx)
     bits: dict = {}
     n_rate = 0
     valid_share = 1.0

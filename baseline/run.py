@@ -201,7 +201,7 @@ def decode_run(file: str | Path, out: str | Path, *, scene: Optional[str] = None
                 prov.clear_cache()
                 r.model.unbake()             # (a bake holds the cached features' first-layer terms)
                 nc = r.evaluate(render)
-                prov.build_cache(r.model.xyz)
+                prov.build_cache(r.model.positions())
                 r.model.bake_if_faster()
                 t["fps_no_cache"] = nc["fps"]
                 echo(f"FPS without the feature cache {nc['fps']:.1f} (with {t['fps']:.1f})")

@@ -2,10 +2,12 @@
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 import torch
 
 from baseline.codec.container import BitstreamError, read_container
+from baseline.codec.rangecoder import anchor_bounds
 from baseline.modelfile import (decode_model, encode_model, file_info, format_info,
                                         format_rate_check, rate_check)
 from baseline.data.scene import load_scene
@@ -357,3 +359,38 @@ def test_lattice_positions_decode_the_trained_positions(encoded, tmp_path):
     idx_raw = {int(i): j for j, i in enumerate(encoded["stats"]["index"].tolist())}
     perm = torch.tensor([idx_raw[int(i)] for i in st["index"].tolist()])
     assert torch.equal(raw.model.gaussian_mask()[perm], dec.model.gaussian_mask())
+
+
+def test_training_drew_the_decoded_positions(encoded, tmp_path):
+    """train.positions = "coded" (the default): training drew every coded anchor at the
+    position the decoder gives it, bit for bit (HAC's get_anchor), over the box taken when the
+    context started, which the encoder stored and a checkpoint keeps."""
+    t, st = encoded["trainer"], encoded["stats"]
+    box = t.model.position_box
+    assert box is not None
+    dec = decode_model(encoded["path"])
+    assert torch.equal(t.model.positions(st["index"]), dec.model.xyz)
+    assert not torch.equal(t.model.xyz.detach()[st["index"]], dec.model.xyz)   # floats differ
+    assert torch.equal(coded_state(t.model, t.entropy).xyz, dec.model.xyz)
+    t.save_checkpoint(tmp_path / "ck.pt")
+    fresh = Trainer(t.cfg, t.scene, tmp_path / "run", progress=False)
+    assert fresh.model.position_box is None
+    fresh.load_checkpoint(tmp_path / "ck.pt")
+    assert all(np.array_equal(a, b) for a, b in zip(fresh.model.position_box, box))
+
+
+def test_float_positions_train_at_the_stored_floats(scene, tmp_path):
+    """train.positions = "float": no box, training draws the stored floats (the encoder then
+    takes the coded anchors' box, as before the option existed)."""
+    t = Trainer(demo_cfg(30, "train.positions=float", "entropy.context_from=10"), scene,
+                tmp_path / "run", progress=False)
+    t.train()
+    assert t.phase == "adaptive" and t.model.position_box is None
+    assert torch.equal(t.model.positions(), t.model.xyz)
+    # "coded" draws the 16-bit positions from the first step, over the initial anchors' box
+    c = Trainer(demo_cfg(30, "entropy.context_from=10"), scene, tmp_path / "c", progress=False)
+    for h in c.hooks:
+        h.before_step(1)
+    lo, hi = anchor_bounds(c.model.xyz.detach().numpy())
+    assert np.array_equal(c.model.position_box[0], lo) and np.array_equal(c.model.position_box[1], hi)
+    assert not torch.equal(c.model.positions(), c.model.xyz)

@@ -121,3 +121,24 @@ def test_pre_encode_positions_use_the_coded_anchors_bounds():
     # bounds over every anchor give other positions: the mismatch this guards against
     assert not torch.equal(quantized_positions(xyz, torch.ones(500, dtype=torch.bool))[coded],
                            in_file)
+
+
+@settings(max_examples=60, deadline=None)
+@given(hnp.arrays(np.float32, hnp.array_shapes(min_dims=2, max_dims=2, min_side=1, max_side=64)
+                  .map(lambda s: (s[0], 3)),
+                  elements=st.floats(-1e4, 1e4, width=32)),
+       st.floats(0.0, 1.0))
+def test_training_positions_are_the_files_bit_for_bit(x, cut):
+    """``box_positions`` (training's 16-bit positions, torch) gives exactly the decoder's
+    positions (the codec's numpy quantize + dequantize) for any anchors and any box, anchors
+    outside the box included (both clip to its levels)."""
+    import torch
+
+    from baseline.codec.rangecoder import (anchor_bounds, box_positions, dequantize_positions,
+                                           quantize_positions)
+
+    lo, hi = anchor_bounds(x[: max(1, int(cut * len(x)))])     # a box of some of them
+    want = dequantize_positions(quantize_positions(x, lo, hi), lo, hi)
+    got = box_positions(torch.from_numpy(x), lo, hi)
+    assert got.dtype == torch.float32
+    assert np.array_equal(got.numpy(), want)

@@ -68,6 +68,8 @@ def _adaptive(trainer) -> None:
     for h in trainer.hooks:
         if type(h).__name__ == "HACPhases":
             h.context_from = h.noise_from = 0
+            if h.coded_positions and trainer.model.position_box is None:
+                trainer.model.position_box = (lo, hi)
 
 
 def bench_trainer(trainer, steps: int = 10, warmup: int = 2, label: str = "") -> dict:

@@ -329,6 +329,18 @@ def dequantize_positions(q, lo, hi) -> np.ndarray:
     return (base + q * step).astype(np.float32)
 
 
+def box_positions(xyz, lo, hi):
+    """torch [N,3] -> float32 [N,3]: ``dequantize_positions(quantize_positions(xyz, lo, hi), lo,
+    hi)`` on the tensor's device, bit for bit (the same float64 operations in the same order;
+    round half to even in both): the positions training draws where the file will store them
+    at 16 bits (``train.positions = "coded"``)."""
+    import torch
+
+    base, step = (torch.from_numpy(a).to(xyz.device) for a in _steps(lo, hi))
+    q = torch.round((xyz.double() - base) / step).clamp_(0, POSITION_LEVELS)
+    return (base + q * step).float()
+
+
 def pack_positions(q) -> bytes:
     return np.ascontiguousarray(q, dtype="<u2").reshape(-1, 3).tobytes()
 

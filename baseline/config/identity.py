@@ -22,12 +22,17 @@ from baseline.config.schema import Config, to_dict
 #      straight-through float Gaussian mask (the rate trains the masks), the sampled bits x the
 #      share of valid visible anchors (mask_anchor_rate), the context grid normalised by the
 #      widened anchor bounds; near plane 0.2 in prefilter and rasterizer (data.near).
-TRAINING_SEMANTICS = 2
+#   3: HAC's anchor positions in training (train.positions = "coded"): the 16-bit positions
+#      the file stores, over the anchor box taken at the start and with the context's
+#      (configs with lattice-coded positions, HAC++'s, train as at 2).
+TRAINING_SEMANTICS = 3
 TRAINING_SEMANTICS_NOTES = {
     1: "before HAC's mask-training rate (boolean-masked offset bits, no mask_anchor_rate, raw "
        "context bounds, near 0.01)",
     2: "HAC's reference rate: straight-through float mask on the offsets' bits, mask_anchor_rate, "
        "widened context bounds; near 0.2",
+    3: "HAC's 16-bit anchor positions in training (the file's), over the box of the start and "
+       "of the context",
 }
 
 

@@ -150,6 +150,12 @@ class TrainConfig:
     device: str = "auto"                 # auto (cuda when torch sees a GPU) | cpu | cuda | cuda:N
     rasterizer: str = "auto"             # auto | cpu | gsplat | reference
     hooks: list[str] = field(default_factory=lambda: ["scaffold_densify", "hac_phases"])
+    # where HAC's phases put the anchors in training: coded (the positions the file will store:
+    # 16-bit over the anchor box, as HAC's get_anchor, with the box taken at the start and again
+    # when the context starts; exact voxel-lattice positions with codec.positions = lattice) |
+    # float (the stored floats; the decoder then draws the anchors up to half a 16-bit step
+    # away: -0.07 dB on truck, docs/RESULTS.md "Anchor positions in training")
+    positions: str = "coded"
     checkpoint_every: int = 5000         # paper-scale iterations; 0 = only at the end
     log_every: int = 10
     save_test_renders: bool = True
@@ -318,6 +324,7 @@ def validate(cfg: Config) -> None:
     if cfg.codec.weight_dtype not in ("float32", "float16"):
         raise ConfigError(f"codec.weight_dtype must be float32 or float16, got '{cfg.codec.weight_dtype}'")
     _one_of("codec.positions", cfg.codec.positions, POSITION_CODINGS)
+    _one_of("train.positions", cfg.train.positions, ("coded", "float"))
     _one_of("codec.masks", cfg.codec.masks, MASK_CODINGS)
     _one_of("codec.grids", cfg.codec.grids, GRID_CODINGS)
 

@@ -48,8 +48,8 @@ def _view_anchors(model, cam, coded):
     if model.fixed_values is None:
         raise ValueError("the census needs a decoded model or a trained run in its adaptive phase")
     scales = torch.exp(model.per_anchor["scaling"][:, :3])
-    idx = prefilter_anchors(model.xyz, scales, cam).nonzero()[:, 0]
-    return idx, model.coded_values(idx), model.xyz[idx]
+    idx = prefilter_anchors(model.positions(), scales, cam).nonzero()[:, 0]
+    return idx, model.coded_values(idx), model.positions(idx)
 
 
 def _pattern_stats(xyz: np.ndarray, bits: np.ndarray, rng: np.random.Generator) -> dict:

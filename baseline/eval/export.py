@@ -202,7 +202,7 @@ def union_gaussians(model, cameras, *, coded=None, sh_degree: int = 3, chunk: in
             index, xyz_all, vals_all = coded.index, coded.xyz, coded.values
         else:
             index = torch.arange(model.n_anchors, device=model.xyz.device)
-            xyz_all = model.xyz
+            xyz_all = model.positions()
             vals_all = model.coded_values(index)
         K = model.n_offsets
         B = (sh_degree + 1) ** 2

@@ -39,7 +39,8 @@ def quantization_cost(trainer, scene, cameras=None, *, seed: int = 0,
     cams = cameras if cameras is not None else (scene.test_cameras or scene.train_cameras)
     backend = backend or trainer.cfg.train.rasterizer
     stored = model.per_anchor["xyz"].data.clone()
-    xyz_q = quantized_positions(stored, model.anchor_valid(), trainer.cfg.codec.positions)
+    xyz_q = quantized_positions(stored, model.anchor_valid(), trainer.cfg.codec.positions,
+                                model.position_box)
     idx = torch.arange(model.n_anchors, device=stored.device)
     raw = {k: v.detach().clone() for k, v in model.coded_values(idx).items()}
     hard = (model.gaussian_mask(idx).detach() > 0).float()

@@ -96,7 +96,7 @@ class BakedDecoder:
         dev = model.xyz.device
         idx = torch.arange(N, device=dev)
         values = model.coded_values(idx)
-        xyz = model.xyz.detach()
+        xyz = model.positions().detach()
         feat = model.provider.decoder_features(idx, values, xyz)
         heads = model.decoder.bake_heads(feat)
         ref = model.refiner

@@ -63,7 +63,7 @@ def grow_anchors(model, grads: torch.Tensor, eligible: torch.Tensor, cfg, voxel_
     K = model.n_offsets
     N0 = model.n_anchors
     with torch.no_grad():
-        xyz0 = model.xyz.detach()
+        xyz0 = model.positions().detach()     # HAC's get_anchor: the 16-bit positions
         scaling = torch.exp(model.per_anchor["scaling"].detach())
         offsets = model.per_anchor["offsets"].detach()
         all_xyz = (xyz0[:, None, :] + offsets * scaling[:, None, :3]).reshape(-1, 3)

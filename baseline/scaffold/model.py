@@ -15,6 +15,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
+from baseline.codec.rangecoder import box_positions
 from baseline.contracts import BakeHead, CodedAttribute
 from baseline.scaffold.gaussians import Gaussians, kept_gaussians
 from baseline.timing import backward_mark, stage
@@ -132,6 +133,10 @@ class AnchorModel(nn.Module):
         # the voxel lattice the anchors sit on (set by build_model, a checkpoint's restore or the
         # lattice position decoder; the lattice position coder needs it)
         self.voxel_size: Optional[float] = None
+        # training with train.positions = "coded" and 16-bit position coding: the anchor box
+        # (lo [3], hi [3], float32 numpy, HAC's widened bounds) whose 16-bit positions
+        # training draws (positions()) and the encoder stores; None: the stored floats
+        self.position_box: Optional[tuple] = None
         self.per_anchor = nn.ParameterDict()
         self.grow_rules: dict[str, Optional[GrowRule]] = {}
         self.add_per_anchor("xyz", xyz.float().clone(), None, trainable=False)
@@ -204,6 +209,15 @@ class AnchorModel(nn.Module):
     def xyz(self) -> torch.Tensor:
         return self.per_anchor["xyz"]
 
+    def positions(self, idx: Optional[torch.Tensor] = None) -> torch.Tensor:
+        """[M,3] the positions training draws anchors ``idx`` (all: None) at: with a
+        :attr:`position_box`, the 16-bit positions the file will store (HAC's ``get_anchor``;
+        the anchors never train, so no gradient is lost); else the stored floats."""
+        xyz = self.xyz if idx is None else self.xyz[idx]
+        if self.position_box is None:
+            return xyz
+        return box_positions(xyz.detach(), *self.position_box)
+
     def coded_attributes(self) -> tuple[CodedAttribute, ...]:
         return tuple(self.provider.coded_attributes())
 
@@ -242,7 +256,7 @@ class AnchorModel(nn.Module):
         if values is None:
             values = self.coded_values(idx)
         if xyz is None:
-            xyz = self.per_anchor["xyz"][idx]
+            xyz = self.positions(idx)
         with stage("provider"):
             feat = self.provider.decoder_features(idx, values, xyz)
         backward_mark(feat, "decoder MLPs + refiner bwd")

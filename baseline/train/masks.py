@@ -92,7 +92,7 @@ class HACPPMaskTraining(HACMaskTraining):
                     weights[a.name] = am[:, None] * gm.repeat_interleave(per, dim=1)
                 else:
                     weights[a.name] = am[:, None].expand(-1, a.dims)
-            _, bits = ent(model.xyz[rows], model.coded_values(rows), gm, training=True,
+            _, bits = ent(model.positions(rows), model.coded_values(rows), gm, training=True,
                           bit_weights=weights)
             rate, bpv = rate_term(bits, len(rows), 1.0, None, n, t.rate_values_per_anchor)
             terms["bpp"] = bpv
