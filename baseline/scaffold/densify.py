@@ -84,6 +84,8 @@ def grow_anchors(model, grads: torch.Tensor, eligible: torch.Tensor, cfg, voxel_
             sel = cand.nonzero()[:, 0]
             cells = torch.round(all_xyz[sel].double() / size).long()          # [C,3]
             uniq, inverse = _unique_rows(cells)                                # [U,3], [C]
+            # the stored (lattice) positions: HAC reads its floored 16-bit ones, which put an
+            # anchor on a cell boundary in the lower cell (docs/deviations.md)
             existing = torch.round(model.xyz.detach().double() / size).long()   # [N,3], repeats ok
             both, inv_both = _unique_rows(torch.cat([existing, uniq], 0))
             occupied = torch.zeros(len(both), dtype=torch.bool, device=both.device)
