@@ -99,6 +99,13 @@ def test_type_mismatch_names_key_and_patch(tmp_path):
         build_config([], ["train.seed=true"])
 
 
+def test_choice_keys_name_the_choices():
+    with pytest.raises(ConfigError, match="train.positions.*coded.*float"):
+        build_config([], ["train.positions=floats"])
+    assert build_config([], ["train.positions=float"]).train.positions == "float"
+    assert build_config([]).train.positions == "coded"
+
+
 def test_unknown_patch_lists_available():
     with pytest.raises(ConfigError, match="available patches:.*cpu"):
         build_config(["no-such-patch"])
