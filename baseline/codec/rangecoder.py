@@ -337,8 +337,9 @@ def box_positions(xyz, lo, hi):
     import torch
 
     base, step = (torch.from_numpy(a).to(xyz.device) for a in _steps(lo, hi))
-    q = torch.round((xyz.double() - base) / step).clamp_(0, POSITION_LEVELS)
-    return (base + q * step).float()
+    t = xyz.to(torch.float64, copy=True)     # in place from here: half the time of new tensors
+    t.sub_(base).div_(step).round_().clamp_(0, POSITION_LEVELS).mul_(step).add_(base)
+    return t.float()
 
 
 def pack_positions(q) -> bytes:
