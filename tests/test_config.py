@@ -68,10 +68,12 @@ def test_cpu_preset_scales_the_mask_lr_and_the_demo_does_not():
     unscaled = build_config(["cpu"], ["lr.mask_schedule_scaled=false"])
     assert config_hash(cpu) != config_hash(unscaled)
     assert config_hash(cpu) == config_hash(build_config(["cpu", "masks-lr-scaled"], []))
-    demo = build_config(["cpu", "demo"], ["train.iterations=6000", "entropy.lmbda=0.004"])
+    demo = build_config(["cpu", "demo"], ["train.iterations=6000", "entropy.lmbda=0.004",
+                                          "train.positions=float"])
     assert not demo.lr.mask_schedule_scaled
     archived = archived_hashes("demo-6k-s3")
-    assert config_hash(demo) in archived          # HAC's 6k demo record, trained before the fold
+    # HAC's 6k demo record, trained before the fold, at training semantics 2
+    assert config_hash(demo, semantics=2) in archived and config_hash(demo) not in archived
     assert build_config(["cpu", "demo", "masks-lr-scaled"], []).lr.mask_schedule_scaled
 
 
@@ -153,7 +155,8 @@ def test_hash_of_finished_runs_survives_new_options():
     from baseline.config import LATER_KEYS, TRAINING_SEMANTICS
 
     # the demo preset of those runs had the full grid layouts (it sizes them from the anchors now)
-    old = ["entropy.lmbda=0.004", "entropy.grid.auto=false", "predict.grid_auto=false"]
+    old = ["entropy.lmbda=0.004", "entropy.grid.auto=false", "predict.grid_auto=false",
+           "train.positions=float"]
     base = build_config(["cpu", "demo"], old)
     assert ("lr", "mask_schedule_scaled") in LATER_KEYS
     archived = archived_hashes("demo-schedule/1k")
@@ -231,7 +234,9 @@ def test_truck_hacpp_archive_is_what_its_command_plans_today(tmp_path):
     Predict-GS+HAC++ from the records in docs/examples/truck-r4-cpu-hacpp-s2 with `--report-only`:
     that holds only while the command plans exactly those run folders (same config hashes). A
     change to what a config trains changes its hash, and the archived records must then no
-    longer be reported as this code's runs; this test names the change."""
+    longer be reported as this code's runs; this test names the change. (They are records of
+    training semantics 2, which trained at the float anchor positions: today's command plans
+    none of them, the same command at the float positions hashed at version 2 plans them all.)"""
     from baseline.experiment import parse_methods, plan_runs, with_own_lambdas
 
     common = ["cpu"]
@@ -240,11 +245,14 @@ def test_truck_hacpp_archive_is_what_its_command_plans_today(tmp_path):
         [["HAC", "0.008", "0.004", "0.002", "0.001"],
          ["Predict-GS", "0.004", "0.002", "0.001", "0.0005"],
          ["HAC++", "0.008", "0.004", "0.002", "0.001"]], common)
-    specs = plan_runs(tmp_path, methods, [0.004, 0.002, 0.001], common,
-                      ["data.resolution=4"], [0, 1])
-    planned = {s.dir.name for s in specs}
     runs = Path(__file__).parent.parent / "docs/examples/truck-r4-cpu-hacpp-s2/runs"
     archived = {p.name for p in runs.iterdir()}
+    today = plan_runs(tmp_path, methods, [0.004, 0.002, 0.001], common,
+                      ["data.resolution=4"], [0, 1])
+    assert not archived & {s.dir.name for s in today}
+    specs = plan_runs(tmp_path, methods, [0.004, 0.002, 0.001], common,
+                      ["data.resolution=4", "train.positions=float"], [0, 1])
+    planned = {f"{s.dir.name.rsplit('-', 1)[0]}-{config_hash(s.cfg, semantics=2)}" for s in specs}
     # every archived run is planned; the one planned run not archived was never trained
     assert archived <= planned, sorted(archived - planned)
     assert [n.rsplit("-", 1)[0] for n in planned - archived] == ["predict-gs-l0.0005-s1"]

@@ -404,10 +404,11 @@ def test_predict_gs_hash_of_the_archived_truck_record_survives_new_options():
         method, lam, seed = name.rsplit("-", 2)
         patches = ["cpu"] + (["predict-gs"] if method == "predict-gs" else [])
         sets = ["data.resolution=4", f"entropy.lmbda={float(lam[1:])!r}",
-                f"train.seed={int(seed[1:])}"]
-        assert config_hash(build_config(patches, sets)) == h, name
+                f"train.seed={int(seed[1:])}", "train.positions=float"]    # semantics 2
+        assert config_hash(build_config(patches, sets), semantics=2) == h, name
+        assert config_hash(build_config(patches, sets[:-1])) != h, name
         on = build_config(patches + ["residual-grow-parent"], sets)
-        assert (config_hash(on) == h) == (method == "baseline"), name
+        assert (config_hash(on, semantics=2) == h) == (method == "baseline"), name
     assert "predict-gs-l0.004-s0" in runs
 
 
@@ -428,10 +429,10 @@ def test_sfp_training_semantics_changes_only_predict_gs_hashes():
         method, lam, seed, h = d.name.rsplit("-", 3)
         cfg = build_config(["cpu"] + (["predict-gs"] if method == "predict-gs" else []),
                            ["data.resolution=4", f"entropy.lmbda={float(lam[1:])!r}",
-                            f"train.seed={int(seed[1:])}"])
-        assert config_hash(cfg) != h, d.name
+                            f"train.seed={int(seed[1:])}", "train.positions=float"])
+        assert config_hash(cfg, semantics=2) != h, d.name
         cfg.lr.mask_schedule_scaled = False
-        assert (config_hash(cfg) == h) == (method == "baseline"), d.name
+        assert (config_hash(cfg, semantics=2) == h) == (method == "baseline"), d.name
 
 
 def test_hac_and_predict_gs_start_from_the_same_decoder_with_one_seed(small_scene, tmp_path):

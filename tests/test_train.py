@@ -326,7 +326,7 @@ def test_decoder_quant_sets_what_the_decoder_sees_in_training(scene_dir, tmp_pat
     def spy(cam_center, idx, values=None, xyz=None, visible=None):
         seen["values"] = {k: v.detach().clone() for k, v in values.items()}
         with torch.no_grad():   # the steps of this forward (the update after it changes them)
-            P = t.entropy.params(t.model.xyz.detach()[idx])
+            P = t.entropy.params(xyz.detach())      # the positions training drew
         seen["q"] = {k: P[k][2] for k in seen["values"]}
         return decode(cam_center, idx, values, xyz=xyz, visible=visible)
 

@@ -74,7 +74,8 @@ LATER_KEYS = {("lr", "mask_schedule_scaled"): False,
               ("lr", "channel_final"): 0.0005,
               ("entropy", "rate_values_per_anchor"): 0,
               ("densify", "reference_skip_update"): False,
-              ("entropy", "context"): "own"}
+              ("entropy", "context"): "own",
+              ("train", "positions"): "float"}
 
 # Options that only one component reads, added or given new defaults after runs of configs
 # without that component were archived: left out of the hash of a config that does not select
