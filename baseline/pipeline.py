@@ -83,11 +83,13 @@ def coded_state(model, entropy, positions: str = "raw16") -> CodedState:
     return CodedState(index=index, xyz=xyz, values=values)
 
 
-def visible_anchors(model, cam: Camera) -> torch.Tensor:
-    """[M] indices of the anchors that pass the prefilter for ``cam``."""
+def visible_anchors(model, cam: Camera, positions: Optional[torch.Tensor] = None) -> torch.Tensor:
+    """[M] indices of the anchors that pass the prefilter for ``cam``; ``positions`` [N,3]:
+    ``model.positions()`` when the caller has it already (None: computed here)."""
     with torch.no_grad():
         scales = torch.exp(model.per_anchor["scaling"].detach()[:, :3])
-        vis = prefilter_anchors(model.positions().detach(), scales, cam)
+        pos = model.positions() if positions is None else positions
+        vis = prefilter_anchors(pos.detach(), scales, cam)
     return vis.nonzero()[:, 0]
 
 
@@ -125,7 +127,8 @@ def render_view(model, cam: Camera, background: torch.Tensor, *, phase: str = "n
                         background=background, backend=backend)
         return ViewResult(render=out, gaussians=g, camera=cam)
     with stage("prefilter"):
-        idx = visible_anchors(model, cam)
+        pos = model.positions()          # once per view: the prefilter and the decoder read it
+        idx = visible_anchors(model, cam, pos)
     if phase == "decoded" and getattr(model, "baked", None) is not None \
             and not torch.is_grad_enabled():
         g = model.baked.decode(cam.center, idx)          # the decoded model's baked form
@@ -133,7 +136,7 @@ def render_view(model, cam: Camera, background: torch.Tensor, *, phase: str = "n
                         background=background, backend=backend)
         return ViewResult(render=out, gaussians=g, camera=cam, bits={}, n_rate_anchors=0)
     values = model.coded_values(idx)
-    xyz = model.positions(idx)
+    xyz = pos[idx]
     bits: dict = {}
     n_rate = 0
     valid_share = 1.0
