@@ -394,3 +394,33 @@ def test_float_positions_train_at_the_stored_floats(scene, tmp_path):
     lo, hi = anchor_bounds(c.model.xyz.detach().numpy())
     assert np.array_equal(c.model.position_box[0], lo) and np.array_equal(c.model.position_box[1], hi)
     assert not torch.equal(c.model.positions(), c.model.xyz)
+
+
+def test_boxed_positions_follow_the_anchors_and_the_box(scene, tmp_path):
+    """The 16-bit positions are computed once per set of anchors and box; a new box, an
+    in-place write to the anchors or a new anchor tensor (growth, pruning) recomputes them, and
+    the rows of a subset are those of the whole, bit for bit."""
+    from baseline.codec.rangecoder import box_positions
+
+    t = Trainer(demo_cfg(30), scene, tmp_path / "run", progress=False)
+    m = t.model
+    lo, hi = anchor_bounds(m.xyz.detach().numpy())
+    m.position_box = (lo, hi)
+    first = m.positions()
+    assert m.positions() is first                                  # reused
+    assert torch.equal(first, box_positions(m.xyz.detach(), lo, hi))
+    idx = torch.tensor([3, 0, 7])
+    assert torch.equal(m.positions(idx), box_positions(m.xyz.detach()[idx], lo, hi))
+    wider = (lo - 1.0, hi + 1.0)
+    m.position_box = wider                                         # a new box
+    assert torch.equal(m.positions(), box_positions(m.xyz.detach(), *wider))
+    wider[1][0] += 2.0                                             # the same box, edited
+    assert torch.equal(m.positions(), box_positions(m.xyz.detach(), *wider))
+    with torch.no_grad():
+        m.xyz[0] += 0.25                                           # an in-place write
+    assert torch.equal(m.positions(), box_positions(m.xyz.detach(), *wider))
+    m.per_anchor["xyz"] = torch.nn.Parameter(m.xyz.detach()[:5].clone(), requires_grad=False)
+    assert m.positions().shape == (5, 3)                           # a new anchor tensor
+    assert torch.equal(m.positions(), box_positions(m.xyz.detach(), *wider))
+    m.position_box = None
+    assert m.positions() is m.xyz

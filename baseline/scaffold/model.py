@@ -11,6 +11,7 @@ from __future__ import annotations
 import math
 from typing import Callable, NamedTuple, Optional
 
+import numpy as np
 import torch
 import torch.nn as nn
 import torch.nn.functional as F
@@ -137,6 +138,7 @@ class AnchorModel(nn.Module):
         # (lo [3], hi [3], float32 numpy, HAC's widened bounds) whose 16-bit positions
         # training draws (positions()) and the encoder stores; None: the stored floats
         self.position_box: Optional[tuple] = None
+        self._positions_cache: Optional[tuple] = None     # see _boxed_positions
         self.per_anchor = nn.ParameterDict()
         self.grow_rules: dict[str, Optional[GrowRule]] = {}
         self.add_per_anchor("xyz", xyz.float().clone(), None, trainable=False)
@@ -213,10 +215,27 @@ class AnchorModel(nn.Module):
         """[M,3] the positions training draws anchors ``idx`` (all: None) at: with a
         :attr:`position_box`, the 16-bit positions the file will store (HAC's ``get_anchor``;
         the anchors never train, so no gradient is lost); else the stored floats."""
-        xyz = self.xyz if idx is None else self.xyz[idx]
         if self.position_box is None:
-            return xyz
-        return box_positions(xyz.detach(), *self.position_box)
+            return self.xyz if idx is None else self.xyz[idx]
+        full = self._boxed_positions()
+        return full if idx is None else full[idx]
+
+    def _boxed_positions(self) -> torch.Tensor:
+        """[N,3] every anchor's 16-bit position, computed once per set of anchors and box.
+
+        A step reads them for the prefilter, the decoder and the rate's sample; the anchors do
+        not train, so the result only changes when the anchors (growth, pruning, a device move,
+        an in-place write: the tensor's version counter) or the box change. Boxing is
+        elementwise, so rows of the cached result equal boxing those rows alone, bit for bit.
+        The result is shared: callers must not write into it."""
+        xyz, box = self.xyz, self.position_box
+        c = self._positions_cache
+        if c is not None and c[0] is xyz and c[1] == xyz._version and c[2] is box \
+                and all(np.array_equal(a, b) for a, b in zip(c[3], box)):
+            return c[4]
+        out = box_positions(xyz.detach(), *box)
+        self._positions_cache = (xyz, xyz._version, box, tuple(np.array(b, copy=True) for b in box), out)
+        return out
 
     def coded_attributes(self) -> tuple[CodedAttribute, ...]:
         return tuple(self.provider.coded_attributes())
