@@ -44,8 +44,10 @@ def quality_table(results: dict) -> Table:
                      "ref" if _is_base(results, r) else _pct(_change(r["bytes"], p and p["bytes"])),
                      str(r["anchors"])])
     notes = ["Decoded .pgs file on the test views; metrics on uint8 images. 'pre-encode': PSNR "
-             "of the trained model before coding. MB = file bytes / 2^20; size change vs the "
-             "baseline at the same rate point.",
+             "of the trained model before entropy coding, its coded values and positions "
+             "rounded as the codec rounds them (a trained compressed model: equal to the "
+             "decoded file's, since the coding is lossless). MB = file bytes / 2^20; size "
+             "change vs the baseline at the same rate point.",
              ssim_note(results), _lpips_note(results)]
     return Table("Quality and size (decoded file)",
                  ["method", "lambda", "PSNR (dB)", "pre-encode", "SSIM", "LPIPS", "size (MB)",
