@@ -296,3 +296,24 @@ def test_config_list_groups_the_patches_by_kind(capsys):
             kind = line.split(" (")[0]
         else:
             assert patch_infos()[line.split()[0]].kind == kind
+
+
+def test_truck_semantics3_records_are_what_their_command_plans_today(tmp_path):
+    """docs/examples/truck-pos holds truck's runs at training semantics 3 (the 16-bit positions),
+    archived as the adopted protocol's curves finish: every one must be a run today's command
+    plans (same config hash), else a change to what a config trains has orphaned them and they
+    must no longer be reported as this code's runs. The command: `pgs compare
+    ../shared/data/tandt_truck -r 4 --patch cpu --vs predict-gs --seeds 0 1 --lambda-for HAC
+    0.008 0.004 0.002 --lambda-for Predict-GS 0.004 0.002 0.001`."""
+    from baseline.experiment import parse_methods, plan_runs, with_own_lambdas
+
+    common = ["cpu"]
+    methods = with_own_lambdas(parse_methods(["predict-gs"]),
+                               [["HAC", "0.008", "0.004", "0.002"],
+                                ["Predict-GS", "0.004", "0.002", "0.001"]], common)
+    runs = Path(__file__).parent.parent / "docs/examples/truck-pos/runs"
+    archived = {p.name for p in runs.iterdir()}
+    planned = {s.dir.name for s in plan_runs(tmp_path, methods, [0.004], common,
+                                             ["data.resolution=4"], [0, 1])}
+    assert len(planned) == 12 and archived, planned
+    assert archived <= planned, sorted(archived - planned)
