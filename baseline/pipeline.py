@@ -83,13 +83,11 @@ def coded_state(model, entropy, positions: str = "raw16") -> CodedState:
     return CodedState(index=index, xyz=xyz, values=values)
 
 
-def visible_anchors(model, cam: Camera, positions: Optional[torch.Tensor] = None) -> torch.Tensor:
-    """[M] indices of the anchors that pass the prefilter for ``cam``; ``positions`` [N,3]:
-    ``model.positions()`` when the caller has it already (None: computed here)."""
+def visible_anchors(model, cam: Camera) -> torch.Tensor:
+    """[M] indices of the anchors that pass the prefilter for ``cam``."""
     with torch.no_grad():
         scales = torch.exp(model.per_anchor["scaling"].detach()[:, :3])
-        pos = model.positions() if positions is None else positions
-        vis = prefilter_anchors(pos.detach(), scales, cam)
+        vis = prefilter_anchors(model.positions().detach(), scales, cam)
     return vis.nonzero()[:, 0]
 
 
@@ -127,8 +125,7 @@ def render_view(model, cam: Camera, background: torch.Tensor, *, phase: str = "n
                         background=background, backend=backend)
         return ViewResult(render=out, gaussians=g, camera=cam)
     with stage("prefilter"):
-        pos = model.positions()          # once per view: the prefilter and the decoder read it
-        idx = visible_anchors(model, cam, pos)
+        idx = visible_anchors(model, cam)
     if phase == "decoded" and getattr(model, "baked", None) is not None \
             and not torch.is_grad_enabled():
         g = model.baked.decode(cam.center, idx)          # the decoded model's baked form
@@ -136,7 +133,7 @@ def render_view(model, cam: Camera, background: torch.Tensor, *, phase: str = "n
                         background=background, backend=backend)
         return ViewResult(render=out, gaussians=g, camera=cam, bits={}, n_rate_anchors=0)
     values = model.coded_values(idx)
-    xyz = pos[idx]
+    xyz = model.positions(idx)           # kept by the model: not boxed again per view
     bits: dict = {}
     n_rate = 0
     valid_share = 1.0

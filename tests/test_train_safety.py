@@ -141,7 +141,7 @@ def test_a_view_that_sees_no_anchor_trains_on_the_background(small_scene, tmp_pa
     cfg = demo_cfg(40, patches=patches)
     t = Trainer(cfg, load_scene(small_scene), tmp_path / "run", progress=False)
     monkeypatch.setattr(pipeline, "visible_anchors",
-                        lambda model, cam, positions=None: torch.zeros(0, dtype=torch.long))
+                        lambda model, cam: torch.zeros(0, dtype=torch.long))
     for phase in ("none", "noise", "adaptive"):
         t.phase = phase
         terms = t.step(1)

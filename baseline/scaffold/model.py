@@ -230,11 +230,11 @@ class AnchorModel(nn.Module):
         The result is shared: callers must not write into it."""
         xyz, box = self.xyz, self.position_box
         c = self._positions_cache
-        if c is not None and c[0] is xyz and c[1] == xyz._version and c[2] is box \
-                and all(np.array_equal(a, b) for a, b in zip(c[3], box)):
-            return c[4]
+        if c is not None and c[0] is xyz and c[1] == xyz._version \
+                and all(np.array_equal(a, b) for a, b in zip(c[2], box)):
+            return c[3]
         out = box_positions(xyz.detach(), *box)
-        self._positions_cache = (xyz, xyz._version, box, tuple(np.array(b, copy=True) for b in box), out)
+        self._positions_cache = (xyz, xyz._version, tuple(np.array(b, copy=True) for b in box), out)
         return out
 
     def coded_attributes(self) -> tuple[CodedAttribute, ...]:
