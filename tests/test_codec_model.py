@@ -269,6 +269,39 @@ def test_quant_cost_all_rounded_is_the_decoded_file(encoded, scene):
     assert "all rounded" in format_rows(rows)
 
 
+def test_quant_cost_ablation_replaces_one_attribute_of_the_decoded_model(encoded, scene):
+    """`pgs quant-cost --ablate`: its base row is the decoded model ('all rounded'), each
+    attribute gets a context-mean, a zero and a shuffled row, zeroing an attribute costs PSNR,
+    the statistics cover exactly the coded values, and the model is left as it was."""
+    from baseline.eval.quantcost import format_ablation, quantization_cost, value_ablation
+
+    t = encoded["trainer"]
+    xyz = t.model.xyz.detach().clone()
+    res = value_ablation(t, scene, scene.test_cameras, seed=1, backend="cpu")
+    names = [a.name for a in t.model.coded_attributes()]
+    assert [r["variant"] for r in res["rows"]] == (
+        ["as coded"] + [f"{k} {v}" for v in ("at context mean", "zero", "shuffled") for k in names])
+    base = {r["variant"]: r for r in quantization_cost(t, scene, scene.test_cameras, seed=1,
+                                                       backend="cpu")}
+    by = {r["variant"]: r for r in res["rows"]}
+    assert abs(by["as coded"]["psnr"] - base["all rounded"]["psnr"]) < 1e-9
+    assert by["offsets zero"]["psnr"] < by["as coded"]["psnr"] - 0.1
+    valid = t.model.anchor_valid()
+    hard = (t.model.gaussian_mask().detach() > 0)
+    per = 3 * t.model.n_offsets // hard.shape[1]
+    n_coded = {"scaling": int(valid.sum()) * 6,
+               "offsets": int((hard & valid[:, None]).sum()) * per}
+    st = {s["attribute"]: s for s in res["stats"]}
+    assert set(st) == set(names)
+    for k, n in n_coded.items():
+        assert st[k]["coded_values"] == n
+    for s in st.values():
+        assert s["r2_context_mean"] <= 1.0 and 0.0 <= s["share_at_mean"] <= 1.0
+        assert s["rms_steps_from_mean"] >= 0.0
+    assert torch.equal(t.model.xyz.detach(), xyz) and t.model.fixed_values is None
+    assert "at context mean" in format_ablation(res)
+
+
 def test_quant_cost_refuses_a_run_that_codes_nothing(scene, tmp_path):
     from baseline.eval.quantcost import quantization_cost
 

@@ -74,17 +74,24 @@ def cmd_eval(args) -> int:
 
 
 def cmd_quant_cost(args) -> int:
-    from baseline.eval.quantcost import format_rows, quantization_cost
+    from baseline.eval.quantcost import (format_ablation, format_rows, quantization_cost,
+                                         value_ablation)
     from baseline.guard import check_output
     from baseline.run import load_run, write_json_atomic
 
     check_output(Path(args.run) / "quant_cost.json", command="quant-cost", source=args.run)
     trainer, scene = load_run(args.run, device=args.device)
     cams = scene.test_cameras if args.split == "test" else scene.train_cameras
-    rows = quantization_cost(trainer, scene, cams or scene.train_cameras, seed=args.seed)
-    print(f"{args.run}: {len(cams or scene.train_cameras)} {args.split} views")
+    cams = cams or scene.train_cameras
+    rows = quantization_cost(trainer, scene, cams, seed=args.seed)
+    print(f"{args.run}: {len(cams)} {args.split} views")
     print(format_rows(rows))
-    write_json_atomic(Path(args.run) / "quant_cost.json", {"split": args.split, "rows": rows})
+    out = {"split": args.split, "rows": rows}
+    if args.ablate:
+        out["ablation"] = value_ablation(trainer, scene, cams, seed=args.seed)
+        print()
+        print(format_ablation(out["ablation"]))
+    write_json_atomic(Path(args.run) / "quant_cost.json", out)
     return 0
 
 
@@ -196,6 +203,10 @@ def add_parsers(sub) -> None:
                        "rounded (as coded) or noised (as HAC trains): where its quantization loss comes from")
     p.add_argument("run", help="run folder (trained into HAC's adaptive phase)")
     p.add_argument("--split", choices=["test", "train"], default="test", help="the views to use (default test)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the noise draws")
+    p.add_argument("--seed", type=int, default=0, help="seed of the noise draws (and of --ablate's shuffle)")
+    p.add_argument("--ablate", action="store_true",
+                   help="also what each attribute's coded values buy: the decoded model with one "
+                        "attribute at the entropy model's mean, zero or shuffled among anchors, and "
+                        "how much of the values the context mean predicts (R^2)")
     p.add_argument("--device", default=None, help=DEVICE_HELP)
     p.set_defaults(fn=cmd_quant_cost)

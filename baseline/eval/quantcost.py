@@ -13,6 +13,21 @@ A run in HAC's adaptive phase is rendered on the test views with its coded attri
 A large gap between an attribute's ``noise`` and ``rounded`` rows means the decoder learned to
 use information below the quantization step (noise dithers it; rounding deletes it): train with
 ``--patch quant-ste``. Positions are the 16-bit ones the codec stores, in every row.
+
+:func:`value_ablation` (``pgs quant-cost RUN --ablate``) asks what each attribute's coded
+values buy, starting from the model the file decodes to (``as coded``) and replacing one
+attribute at a time:
+
+* ``<attr> at context mean``: every value set to the entropy model's mean for it, on the
+  value's own quantization grid (``round(mean / Q) Q``): what the context alone predicts, the
+  values that cost the fewest bits;
+* ``<attr> zero``: every value 0 (for a residual: the refiner still runs, on a zero input);
+* ``<attr> shuffled``: the coded anchors' values permuted among them (right statistics, wrong
+  anchor).
+
+The gap between ``as coded`` and ``at context mean`` is what the anchor-specific part of the
+bits buys; with it come, per attribute, the share of the coded values' variance the context
+mean explains (R^2) and their spread in quantization steps.
 """
 from __future__ import annotations
 
@@ -23,21 +38,15 @@ import torch
 from baseline.eval.evaluate import evaluate
 
 
-@torch.no_grad()
-def quantization_cost(trainer, scene, cameras=None, *, seed: int = 0,
-                      backend: Optional[str] = None) -> list[dict]:
-    """Rows ``{"variant", "psnr", "ssim"}`` for the states listed in the module docstring.
-
-    ``trainer``: a loaded run in the adaptive phase (:func:`baseline.run.load_run`).
-    """
+def _coded_state(trainer):
+    """The adaptive-phase model's positions as stored, its raw and coded values, and the
+    entropy model's parameters at those positions."""
     if trainer.phase != "adaptive":
         raise ValueError(f"quant-cost needs a run in HAC's adaptive phase (this one ends in "
                          f"'{trainer.phase}': an uncompressed or unfinished run codes nothing)")
     from baseline.pipeline import quantized_positions
 
     model, ent = trainer.model, trainer.entropy
-    cams = cameras if cameras is not None else (scene.test_cameras or scene.train_cameras)
-    backend = backend or trainer.cfg.train.rasterizer
     stored = model.per_anchor["xyz"].data.clone()
     xyz_q = quantized_positions(stored, model.anchor_valid(), trainer.cfg.codec.positions,
                                 model.position_box)
@@ -45,21 +54,42 @@ def quantization_cost(trainer, scene, cameras=None, *, seed: int = 0,
     raw = {k: v.detach().clone() for k, v in model.coded_values(idx).items()}
     hard = (model.gaussian_mask(idx).detach() > 0).float()
     rounded = ent.quantize_for_coding(xyz_q, raw, hard)
-    steps = {k: P[2] for k, P in ent.params(xyz_q).items()}
-    names = list(raw)
-    gen = torch.Generator(device="cpu").manual_seed(seed)
+    return stored, xyz_q, raw, hard, rounded, ent.params(xyz_q)
 
-    def noisy(k):
-        u = torch.rand(raw[k].shape, generator=gen, dtype=raw[k].dtype).to(raw[k].device)
-        return raw[k] + (u - 0.5) * steps[k]
+
+def _renderer(trainer, scene, cams, backend):
+    """``run(values_of)``: mean PSNR / SSIM over ``cams`` with the model's values set to
+    ``values_of()``, called afresh per view (so noise is drawn per view)."""
+    model = trainer.model
 
     def run(values_of) -> dict:
         psnr = ssim = 0.0
-        for cam in cams:   # one view at a time, so that noise is drawn afresh per view
+        for cam in cams:
             model.fixed_values = values_of()
             r = evaluate(model, scene, [cam], phase="decoded", backend=backend)
             psnr, ssim = psnr + r["psnr"], ssim + r["ssim"]
         return {"psnr": psnr / len(cams), "ssim": ssim / len(cams)}
+    return run
+
+
+@torch.no_grad()
+def quantization_cost(trainer, scene, cameras=None, *, seed: int = 0,
+                      backend: Optional[str] = None) -> list[dict]:
+    """Rows ``{"variant", "psnr", "ssim"}`` for the states listed in the module docstring.
+
+    ``trainer``: a loaded run in the adaptive phase (:func:`baseline.run.load_run`).
+    """
+    model = trainer.model
+    cams = cameras if cameras is not None else (scene.test_cameras or scene.train_cameras)
+    stored, xyz_q, raw, _, rounded, params = _coded_state(trainer)
+    steps = {k: P[2] for k, P in params.items()}
+    names = list(raw)
+    gen = torch.Generator(device="cpu").manual_seed(seed)
+    run = _renderer(trainer, scene, cams, backend or trainer.cfg.train.rasterizer)
+
+    def noisy(k):
+        u = torch.rand(raw[k].shape, generator=gen, dtype=raw[k].dtype).to(raw[k].device)
+        return raw[k] + (u - 0.5) * steps[k]
 
     rows = []
     try:
@@ -74,6 +104,84 @@ def quantization_cost(trainer, scene, cameras=None, *, seed: int = 0,
         model.fixed_values = None
         model.per_anchor["xyz"].data.copy_(stored)
     return rows
+
+
+@torch.no_grad()
+def value_ablation(trainer, scene, cameras=None, *, seed: int = 0,
+                   backend: Optional[str] = None) -> dict:
+    """What each coded attribute's values buy (module docstring): ``{"rows": [{"variant",
+    "psnr", "ssim"}], "stats": [{"attribute", "coded_values", "r2_context_mean",
+    "rms_steps_from_mean", "share_at_mean"}]}``.
+
+    The statistics are over the values the file codes (the coded anchors' values, without the
+    offsets of masked-off Gaussians): R^2 of the context mean as a predictor of the coded value,
+    the root mean square of (value - mean) / Q, and the share of values that equal the context
+    mean on their grid (those cost the fewest bits and carry no anchor-specific information).
+    """
+    model, ent = trainer.model, trainer.entropy
+    cams = cameras if cameras is not None else (scene.test_cameras or scene.train_cameras)
+    stored, xyz_q, raw, hard, rounded, params = _coded_state(trainer)
+    valid = model.anchor_valid()
+    n = int(valid.shape[0])
+    coded = {}
+    for a in ent.attrs:
+        m = ent.value_mask(a, hard, n, device=valid.device)
+        m = valid[:, None].expand(n, a.dims) if m is None else (m & valid[:, None])
+        coded[a.name] = m
+    at_mean, zero, shuffled, stats = {}, {}, {}, []
+    gen = torch.Generator(device="cpu").manual_seed(seed)
+    rows_valid = torch.nonzero(valid).squeeze(1)
+    perm = rows_valid[torch.randperm(len(rows_valid), generator=gen).to(rows_valid.device)]
+    for k, x in rounded.items():
+        mean, _, q = (t.detach().to(x.device) for t in params[k])
+        q = q.expand_as(mean).to(torch.float64)
+        on_grid = (torch.round(mean.to(torch.float64) / q) * q).to(x.dtype)
+        m = coded[k].to(x.device)
+        at_mean[k] = torch.where(m, on_grid, x)
+        zero[k] = torch.where(m, torch.zeros_like(x), x)
+        sh = x.clone()
+        rv, pv = rows_valid.to(x.device), perm.to(x.device)
+        sh[rv] = x[pv]
+        shuffled[k] = torch.where(m, sh, x)
+        xv = x[m].to(torch.float64)
+        mv = mean[m].to(torch.float64)
+        qv = q[m]
+        var = ((xv - xv.mean()) ** 2).sum()
+        stats.append({
+            "attribute": k, "coded_values": int(m.sum()),
+            "r2_context_mean": float(1.0 - ((xv - mv) ** 2).sum() / var) if var > 0 else 0.0,
+            "rms_steps_from_mean": float((((xv - mv) / qv) ** 2).mean().sqrt()) if xv.numel() else 0.0,
+            "share_at_mean": float((x[m] == on_grid[m]).double().mean()) if xv.numel() else 0.0})
+    run = _renderer(trainer, scene, cams, backend or trainer.cfg.train.rasterizer)
+    rows = []
+    try:
+        model.per_anchor["xyz"].data.copy_(xyz_q)
+        rows.append({"variant": "as coded", **run(lambda: dict(rounded))})
+        for label, alt in (("at context mean", at_mean), ("zero", zero), ("shuffled", shuffled)):
+            for k in rounded:
+                rows.append({"variant": f"{k} {label}", **run(lambda k=k, alt=alt: {**rounded, k: alt[k]})})
+    finally:
+        model.fixed_values = None
+        model.per_anchor["xyz"].data.copy_(stored)
+    return {"rows": rows, "stats": stats}
+
+
+def format_ablation(result: dict) -> str:
+    rows, stats = result["rows"], result["stats"]
+    base = rows[0]["psnr"]
+    lines = [f"{'values':<30} {'PSNR (dB)':>10} {'vs coded':>9} {'SSIM':>7}", "-" * 59]
+    for r in rows:
+        lines.append(f"{r['variant']:<30} {r['psnr']:>10.3f} {r['psnr'] - base:>+9.3f} {r['ssim']:>7.4f}")
+    lines.append("")
+    lines.append(f"{'attribute':<12} {'coded values':>13} {'R^2 of context mean':>20} "
+                 f"{'rms (x-mean)/Q':>15} {'at the mean':>12}")
+    for st in stats:
+        lines.append(f"{st['attribute']:<12} {st['coded_values']:>13,} {st['r2_context_mean']:>20.3f} "
+                     f"{st['rms_steps_from_mean']:>15.3f} {st['share_at_mean']:>11.1%}")
+    lines.append("one attribute replaced at a time in the decoded model: by the entropy model's mean "
+                 "on its grid (what the context alone predicts), by 0, or by another coded anchor's "
+                 "values.")
+    return "\n".join(lines)
 
 
 def format_rows(rows: list[dict]) -> str:
