@@ -297,7 +297,8 @@ def test_quant_cost_ablation_replaces_one_attribute_of_the_decoded_model(encoded
         assert st[k]["coded_values"] == n
     for s in st.values():
         assert s["r2_context_mean"] <= 1.0 and 0.0 <= s["share_at_mean"] <= 1.0
-        assert s["rms_steps_from_mean"] >= 0.0
+        assert s["rms_steps_from_mean"] >= 0.0 and s["mean_step"] > 0.0 and s["raw_std"] > 0.0
+        assert 0.0 <= s["share_within_half_step_of_zero"] <= 1.0
     assert torch.equal(t.model.xyz.detach(), xyz) and t.model.fixed_values is None
     assert "at context mean" in format_ablation(res)
 

@@ -110,11 +110,14 @@ def quantization_cost(trainer, scene, cameras=None, *, seed: int = 0,
 def value_ablation(trainer, scene, cameras=None, *, seed: int = 0,
                    backend: Optional[str] = None) -> dict:
     """What each coded attribute's values buy (module docstring): ``{"rows": [{"variant",
-    "psnr", "ssim"}], "stats": [{"attribute", "coded_values", "r2_context_mean",
-    "rms_steps_from_mean", "share_at_mean"}]}``.
+    "psnr", "ssim"}], "stats": [{"attribute", "coded_values", "mean_step", "raw_std",
+    "share_within_half_step_of_zero", "r2_context_mean", "rms_steps_from_mean",
+    "share_at_mean"}]}``.
 
     The statistics are over the values the file codes (the coded anchors' values, without the
-    offsets of masked-off Gaussians): R^2 of the context mean as a predictor of the coded value,
+    offsets of masked-off Gaussians): the mean adaptive step Q, the trained (raw) values' standard
+    deviation and share within half a step of zero (those round to 0), R^2 of the context mean
+    as a predictor of the coded value,
     the root mean square of (value - mean) / Q, and the share of values that equal the context
     mean on their grid (those cost the fewest bits and carry no anchor-specific information).
     """
@@ -146,9 +149,14 @@ def value_ablation(trainer, scene, cameras=None, *, seed: int = 0,
         xv = x[m].to(torch.float64)
         mv = mean[m].to(torch.float64)
         qv = q[m]
+        rv = raw[k].to(x.device)[m].to(torch.float64)
         var = ((xv - xv.mean()) ** 2).sum()
         stats.append({
             "attribute": k, "coded_values": int(m.sum()),
+            "mean_step": float(qv.mean()) if xv.numel() else 0.0,
+            "raw_std": float(rv.std()) if xv.numel() > 1 else 0.0,
+            "share_within_half_step_of_zero": float(((rv / qv).abs() < 0.5).double().mean())
+            if xv.numel() else 0.0,
             "r2_context_mean": float(1.0 - ((xv - mv) ** 2).sum() / var) if var > 0 else 0.0,
             "rms_steps_from_mean": float((((xv - mv) / qv) ** 2).mean().sqrt()) if xv.numel() else 0.0,
             "share_at_mean": float((x[m] == on_grid[m]).double().mean()) if xv.numel() else 0.0})
@@ -173,11 +181,14 @@ def format_ablation(result: dict) -> str:
     for r in rows:
         lines.append(f"{r['variant']:<30} {r['psnr']:>10.3f} {r['psnr'] - base:>+9.3f} {r['ssim']:>7.4f}")
     lines.append("")
-    lines.append(f"{'attribute':<12} {'coded values':>13} {'R^2 of context mean':>20} "
-                 f"{'rms (x-mean)/Q':>15} {'at the mean':>12}")
+    lines.append(f"{'attribute':<12} {'coded values':>13} {'mean step Q':>12} {'raw std':>8} "
+                 f"{'|raw| < Q/2':>12} {'R^2 of context mean':>20} {'rms (x-mean)/Q':>15} "
+                 f"{'at the mean':>12}")
     for st in stats:
-        lines.append(f"{st['attribute']:<12} {st['coded_values']:>13,} {st['r2_context_mean']:>20.3f} "
-                     f"{st['rms_steps_from_mean']:>15.3f} {st['share_at_mean']:>11.1%}")
+        lines.append(f"{st['attribute']:<12} {st['coded_values']:>13,} {st['mean_step']:>12.4g} "
+                     f"{st['raw_std']:>8.4g} {st['share_within_half_step_of_zero']:>11.1%} "
+                     f"{st['r2_context_mean']:>20.3f} {st['rms_steps_from_mean']:>15.3f} "
+                     f"{st['share_at_mean']:>11.1%}")
     lines.append("one attribute replaced at a time in the decoded model: by the entropy model's mean "
                  "on its grid (what the context alone predicts), by 0, or by another coded anchor's "
                  "values.")
