@@ -255,6 +255,7 @@ def test_quant_cost_all_rounded_is_the_decoded_file(encoded, scene):
 
     t = encoded["trainer"]
     xyz = t.model.xyz.detach().clone()
+    scaling = t.model.per_anchor["scaling"].detach().clone()
     rows = quantization_cost(t, scene, scene.test_cameras, seed=1, backend="cpu")
     names = [a.name for a in t.model.coded_attributes()]
     assert [r["variant"] for r in rows] == (["raw"] + [f"{k} rounded" for k in names]
@@ -262,8 +263,9 @@ def test_quant_cost_all_rounded_is_the_decoded_file(encoded, scene):
     dec = decode_model(encoded["path"])
     post = evaluate(dec.model, scene, scene.test_cameras, phase="decoded", backend="cpu")
     by = {r["variant"]: r for r in rows}
-    assert abs(by["all rounded"]["psnr"] - post["psnr"]) < 1e-3
+    assert abs(by["all rounded"]["psnr"] - post["psnr"]) < 1e-6
     assert torch.equal(t.model.xyz.detach(), xyz) and t.model.fixed_values is None
+    assert torch.equal(t.model.per_anchor["scaling"].detach(), scaling)
     again = quantization_cost(t, scene, scene.test_cameras, seed=1, backend="cpu")
     assert [r["psnr"] for r in again] == [r["psnr"] for r in rows]
     assert "all rounded" in format_rows(rows)

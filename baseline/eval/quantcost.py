@@ -31,6 +31,7 @@ mean explains (R^2) and their spread in quantization steps.
 """
 from __future__ import annotations
 
+from contextlib import contextmanager
 from typing import Optional
 
 import torch
@@ -39,8 +40,8 @@ from baseline.eval.evaluate import evaluate
 
 
 def _coded_state(trainer):
-    """The adaptive-phase model's positions as stored, its raw and coded values, and the
-    entropy model's parameters at those positions."""
+    """The adaptive-phase model's 16-bit positions, its raw values, Gaussian masks and coded
+    values, and the entropy model's parameters at those positions."""
     if trainer.phase != "adaptive":
         raise ValueError(f"quant-cost needs a run in HAC's adaptive phase (this one ends in "
                          f"'{trainer.phase}': an uncompressed or unfinished run codes nothing)")
@@ -54,22 +55,35 @@ def _coded_state(trainer):
     raw = {k: v.detach().clone() for k, v in model.coded_values(idx).items()}
     hard = (model.gaussian_mask(idx).detach() > 0).float()
     rounded = ent.quantize_for_coding(xyz_q, raw, hard)
-    return stored, xyz_q, raw, hard, rounded, ent.params(xyz_q)
+    return xyz_q, raw, hard, rounded, ent.params(xyz_q)
 
 
-def _renderer(trainer, scene, cams, backend):
-    """``run(values_of)``: mean PSNR / SSIM over ``cams`` with the model's values set to
-    ``values_of()``, called afresh per view (so noise is drawn per view)."""
+@contextmanager
+def _as_decoded(trainer, scene, cams, backend, xyz_q):
+    """Yield ``run(values_of)``: mean PSNR / SSIM over ``cams`` of the model at the stored
+    positions ``xyz_q`` with its coded values set to ``values_of()``, called afresh per view (so
+    noise is drawn per view). As in a decoded model, the prefilter reads the scalings the
+    values hold (a decoded model keeps no others). The model is restored on exit."""
     model = trainer.model
+    xyz, log_scaling = model.per_anchor["xyz"].data.clone(), model.per_anchor["scaling"].data.clone()
 
     def run(values_of) -> dict:
         psnr = ssim = 0.0
         for cam in cams:
-            model.fixed_values = values_of()
+            values = values_of()
+            model.per_anchor["scaling"].data.copy_(torch.log(values["scaling"].clamp_min(1e-30)))
+            model.fixed_values = values
             r = evaluate(model, scene, [cam], phase="decoded", backend=backend)
             psnr, ssim = psnr + r["psnr"], ssim + r["ssim"]
         return {"psnr": psnr / len(cams), "ssim": ssim / len(cams)}
-    return run
+
+    try:
+        model.per_anchor["xyz"].data.copy_(xyz_q)
+        yield run
+    finally:
+        model.fixed_values = None
+        model.per_anchor["xyz"].data.copy_(xyz)
+        model.per_anchor["scaling"].data.copy_(log_scaling)
 
 
 @torch.no_grad()
@@ -79,30 +93,24 @@ def quantization_cost(trainer, scene, cameras=None, *, seed: int = 0,
 
     ``trainer``: a loaded run in the adaptive phase (:func:`baseline.run.load_run`).
     """
-    model = trainer.model
     cams = cameras if cameras is not None else (scene.test_cameras or scene.train_cameras)
-    stored, xyz_q, raw, _, rounded, params = _coded_state(trainer)
+    xyz_q, raw, _, rounded, params = _coded_state(trainer)
     steps = {k: P[2] for k, P in params.items()}
     names = list(raw)
     gen = torch.Generator(device="cpu").manual_seed(seed)
-    run = _renderer(trainer, scene, cams, backend or trainer.cfg.train.rasterizer)
 
     def noisy(k):
         u = torch.rand(raw[k].shape, generator=gen, dtype=raw[k].dtype).to(raw[k].device)
         return raw[k] + (u - 0.5) * steps[k]
 
     rows = []
-    try:
-        model.per_anchor["xyz"].data.copy_(xyz_q)
+    with _as_decoded(trainer, scene, cams, backend or trainer.cfg.train.rasterizer, xyz_q) as run:
         rows.append({"variant": "raw", **run(lambda: dict(raw))})
         for k in names:
             rows.append({"variant": f"{k} rounded", **run(lambda k=k: {**raw, k: rounded[k]})})
         rows.append({"variant": "all rounded", **run(lambda: dict(rounded))})
         for k in names:
             rows.append({"variant": f"{k} noise", **run(lambda k=k: {**raw, k: noisy(k)})})
-    finally:
-        model.fixed_values = None
-        model.per_anchor["xyz"].data.copy_(stored)
     return rows
 
 
@@ -123,7 +131,7 @@ def value_ablation(trainer, scene, cameras=None, *, seed: int = 0,
     """
     model, ent = trainer.model, trainer.entropy
     cams = cameras if cameras is not None else (scene.test_cameras or scene.train_cameras)
-    stored, xyz_q, raw, hard, rounded, params = _coded_state(trainer)
+    xyz_q, raw, hard, rounded, params = _coded_state(trainer)
     valid = model.anchor_valid()
     n = int(valid.shape[0])
     coded = {}
@@ -160,17 +168,12 @@ def value_ablation(trainer, scene, cameras=None, *, seed: int = 0,
             "r2_context_mean": float(1.0 - ((xv - mv) ** 2).sum() / var) if var > 0 else 0.0,
             "rms_steps_from_mean": float((((xv - mv) / qv) ** 2).mean().sqrt()) if xv.numel() else 0.0,
             "share_at_mean": float((x[m] == on_grid[m]).double().mean()) if xv.numel() else 0.0})
-    run = _renderer(trainer, scene, cams, backend or trainer.cfg.train.rasterizer)
     rows = []
-    try:
-        model.per_anchor["xyz"].data.copy_(xyz_q)
+    with _as_decoded(trainer, scene, cams, backend or trainer.cfg.train.rasterizer, xyz_q) as run:
         rows.append({"variant": "as coded", **run(lambda: dict(rounded))})
         for label, alt in (("at context mean", at_mean), ("zero", zero), ("shuffled", shuffled)):
             for k in rounded:
                 rows.append({"variant": f"{k} {label}", **run(lambda k=k, alt=alt: {**rounded, k: alt[k]})})
-    finally:
-        model.fixed_values = None
-        model.per_anchor["xyz"].data.copy_(stored)
     return {"rows": rows, "stats": stats}
 
 
