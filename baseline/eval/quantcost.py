@@ -125,9 +125,9 @@ def value_ablation(trainer, scene, cameras=None, *, seed: int = 0,
     The statistics are over the values the file codes (the coded anchors' values, without the
     offsets of masked-off Gaussians): the mean adaptive step Q, the trained (raw) values' standard
     deviation and share within half a step of zero (those round to 0), R^2 of the context mean
-    as a predictor of the coded value,
-    the root mean square of (value - mean) / Q, and the share of values that equal the context
-    mean on their grid (those cost the fewest bits and carry no anchor-specific information).
+    as a predictor of the coded value, the root mean square of (value - mean) / Q, and the share
+    of values that equal the context mean on their grid (those cost the fewest bits and carry no
+    anchor-specific information).
     """
     model, ent = trainer.model, trainer.entropy
     cams = cameras if cameras is not None else (scene.test_cameras or scene.train_cameras)
@@ -141,8 +141,8 @@ def value_ablation(trainer, scene, cameras=None, *, seed: int = 0,
         coded[a.name] = m
     at_mean, zero, shuffled, stats = {}, {}, {}, []
     gen = torch.Generator(device="cpu").manual_seed(seed)
-    rows_valid = torch.nonzero(valid).squeeze(1)
-    perm = rows_valid[torch.randperm(len(rows_valid), generator=gen).to(rows_valid.device)]
+    rows = torch.nonzero(valid).squeeze(1).cpu()
+    perm = rows[torch.randperm(len(rows), generator=gen)]   # each coded anchor gets another's values
     for k, x in rounded.items():
         mean, _, q = (t.detach().to(x.device) for t in params[k])
         q = q.expand_as(mean).to(torch.float64)
@@ -151,30 +151,29 @@ def value_ablation(trainer, scene, cameras=None, *, seed: int = 0,
         at_mean[k] = torch.where(m, on_grid, x)
         zero[k] = torch.where(m, torch.zeros_like(x), x)
         sh = x.clone()
-        rv, pv = rows_valid.to(x.device), perm.to(x.device)
-        sh[rv] = x[pv]
+        sh[rows.to(x.device)] = x[perm.to(x.device)]
         shuffled[k] = torch.where(m, sh, x)
-        xv = x[m].to(torch.float64)
-        mv = mean[m].to(torch.float64)
-        qv = q[m]
-        rv = raw[k].to(x.device)[m].to(torch.float64)
+        xv = x[m].to(torch.float64)                 # the coded values
+        mv = mean[m].to(torch.float64)              # their context means
+        qv = q[m]                                   # their steps
+        tv = raw[k].to(x.device)[m].to(torch.float64)   # the trained values they round
         var = ((xv - xv.mean()) ** 2).sum()
         stats.append({
             "attribute": k, "coded_values": int(m.sum()),
             "mean_step": float(qv.mean()) if xv.numel() else 0.0,
-            "raw_std": float(rv.std()) if xv.numel() > 1 else 0.0,
-            "share_within_half_step_of_zero": float(((rv / qv).abs() < 0.5).double().mean())
+            "raw_std": float(tv.std()) if xv.numel() > 1 else 0.0,
+            "share_within_half_step_of_zero": float(((tv / qv).abs() < 0.5).double().mean())
             if xv.numel() else 0.0,
             "r2_context_mean": float(1.0 - ((xv - mv) ** 2).sum() / var) if var > 0 else 0.0,
             "rms_steps_from_mean": float((((xv - mv) / qv) ** 2).mean().sqrt()) if xv.numel() else 0.0,
             "share_at_mean": float((x[m] == on_grid[m]).double().mean()) if xv.numel() else 0.0})
-    rows = []
+    out = []
     with _as_decoded(trainer, scene, cams, backend or trainer.cfg.train.rasterizer, xyz_q) as run:
-        rows.append({"variant": "as coded", **run(lambda: dict(rounded))})
+        out.append({"variant": "as coded", **run(lambda: dict(rounded))})
         for label, alt in (("at context mean", at_mean), ("zero", zero), ("shuffled", shuffled)):
             for k in rounded:
-                rows.append({"variant": f"{k} {label}", **run(lambda k=k, alt=alt: {**rounded, k: alt[k]})})
-    return {"rows": rows, "stats": stats}
+                out.append({"variant": f"{k} {label}", **run(lambda k=k, alt=alt: {**rounded, k: alt[k]})})
+    return {"rows": out, "stats": stats}
 
 
 def format_ablation(result: dict) -> str:
