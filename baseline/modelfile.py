@@ -382,9 +382,7 @@ def _decode_model(path, max_bytes, plan: dict) -> DecodedModel:
         raise BitstreamError("refiner sections in a file whose config has no refiner")
     values = entropy.decompress(xyz, {a: sections[a] for a in attrs}, gmask, n=N)
     model.per_anchor["mask"].data = torch.where(gmask > 0, MASK_LOGIT, -MASK_LOGIT)[..., None]
-    model.per_anchor["scaling"].data = torch.log(values["scaling"].clamp_min(1e-30))
-    model.per_anchor["offsets"].data = values["offsets"].view(N, K, 3).clone()
-    model.fixed_values = values
+    model.set_fixed_values(values)
     if feature_cache(model) is not None:
         model.provider.build_cache(xyz)
     model.eval()

@@ -62,17 +62,17 @@ def _coded_state(trainer):
 def _as_decoded(trainer, scene, cams, backend, xyz_q):
     """Yield ``run(values_of)``: mean PSNR / SSIM over ``cams`` of the model at the stored
     positions ``xyz_q`` with its coded values set to ``values_of()``, called afresh per view (so
-    noise is drawn per view). As in a decoded model, the prefilter reads the scalings the
-    values hold (a decoded model keeps no others). The model is restored on exit."""
+    noise is drawn per view), set as a decoded model sets them
+    (:meth:`AnchorModel.set_fixed_values`: the prefilter then reads the scalings the values
+    hold). The model is restored on exit."""
     model = trainer.model
-    xyz, log_scaling = model.per_anchor["xyz"].data.clone(), model.per_anchor["scaling"].data.clone()
+    kept = {k: model.per_anchor[k].data for k in ("scaling", "offsets")}
+    xyz = model.per_anchor["xyz"].data.clone()
 
     def run(values_of) -> dict:
         psnr = ssim = 0.0
         for cam in cams:
-            values = values_of()
-            model.per_anchor["scaling"].data.copy_(torch.log(values["scaling"].clamp_min(1e-30)))
-            model.fixed_values = values
+            model.set_fixed_values(values_of())
             r = evaluate(model, scene, [cam], phase="decoded", backend=backend)
             psnr, ssim = psnr + r["psnr"], ssim + r["ssim"]
         return {"psnr": psnr / len(cams), "ssim": ssim / len(cams)}
@@ -83,7 +83,8 @@ def _as_decoded(trainer, scene, cams, backend, xyz_q):
     finally:
         model.fixed_values = None
         model.per_anchor["xyz"].data.copy_(xyz)
-        model.per_anchor["scaling"].data.copy_(log_scaling)
+        for k, t in kept.items():
+            model.per_anchor[k].data = t
 
 
 @torch.no_grad()

@@ -254,6 +254,15 @@ class AnchorModel(nn.Module):
         with torch.no_grad():
             return (torch.sigmoid(self.per_anchor["mask"][..., 0]) > self.mask_threshold).any(dim=1)
 
+    def set_fixed_values(self, values: dict[str, torch.Tensor]) -> None:
+        """Render ``values`` (name -> [N, dims], as the codec decodes them) as a decoded model
+        does: the decoder reads them, and the per-anchor scaling and offsets, which the prefilter
+        and the exports read, are set to match (scaling coded after exp, so its log here)."""
+        n = values["scaling"].shape[0]
+        self.per_anchor["scaling"].data = torch.log(values["scaling"].clamp_min(1e-30))
+        self.per_anchor["offsets"].data = values["offsets"].view(n, self.n_offsets, 3).clone()
+        self.fixed_values = values
+
     def coded_values(self, idx: torch.Tensor) -> dict[str, torch.Tensor]:
         """Values of every coded attribute for anchors ``idx`` [M]: name -> [M, dims].
 
