@@ -460,3 +460,24 @@ def test_boxed_positions_follow_the_anchors_and_the_box(scene, tmp_path):
     assert torch.equal(m.positions(), box_positions(m.xyz.detach(), *wider))
     m.position_box = None
     assert m.positions() is m.xyz
+
+
+def test_quant_cost_keeps_one_file_per_split(encoded, scene, scene_maker, tmp_path):
+    """`pgs quant-cost RUN --split train` writes its own file: the test views' figures stay."""
+    import json
+    import shutil
+
+    from baseline.cli import main
+    from baseline.guard import scene_identity
+    from baseline.run import write_json_atomic
+
+    run = tmp_path / "run"
+    shutil.copytree(encoded["dir"] / "run", run)
+    folder = scene_maker(n_views=12, width=64, height=48, seed=2)   # the `scene` fixture's
+    write_json_atomic(run / "scene.json", scene_identity(scene, folder))   # as `pgs train` does
+    assert main(["quant-cost", str(run)]) == 0
+    test_json = (run / "quant_cost.json").read_text()
+    assert main(["quant-cost", str(run), "--split", "train"]) == 0
+    assert (run / "quant_cost.json").read_text() == test_json
+    assert json.loads(test_json)["split"] == "test"
+    assert json.loads((run / "quant_cost.train.json").read_text())["split"] == "train"

@@ -79,7 +79,11 @@ def cmd_quant_cost(args) -> int:
     from baseline.guard import check_output
     from baseline.run import load_run, write_json_atomic
 
-    check_output(Path(args.run) / "quant_cost.json", command="quant-cost", source=args.run)
+    # One file per split (test: quant_cost.json, train: quant_cost.train.json), so measuring
+    # the training views never replaces the test views' figures.
+    name = "quant_cost.json" if args.split == "test" else f"quant_cost.{args.split}.json"
+    out_path = Path(args.run) / name
+    check_output(out_path, command="quant-cost", source=args.run)
     trainer, scene = load_run(args.run, device=args.device)
     cams = scene.test_cameras if args.split == "test" else scene.train_cameras
     cams = cams or scene.train_cameras
@@ -91,7 +95,7 @@ def cmd_quant_cost(args) -> int:
         out["ablation"] = value_ablation(trainer, scene, cams, seed=args.seed)
         print()
         print(format_ablation(out["ablation"]))
-    write_json_atomic(Path(args.run) / "quant_cost.json", out)
+    write_json_atomic(out_path, out)
     return 0
 
 
