@@ -237,7 +237,7 @@ def decode_run(file: str | Path, out: str | Path, *, scene: Optional[str] = None
 def train_run(scene_path: str, out: str | Path, cfg: Config, resume: bool = False,
               progress: bool = True, evaluate_after: bool = True) -> dict:
     """Train (or resume) a run in ``out`` and evaluate it on the test views."""
-    from baseline.guard import RunLock, check_resume, scene_identity
+    from baseline.guard import RunLock, check_resume
 
     out = Path(out)
     scene = load_scene_for(cfg, scene_path, progress=progress)
@@ -248,10 +248,18 @@ def train_run(scene_path: str, out: str | Path, cfg: Config, resume: bool = Fals
             check_resume(out, cfg, scene, scene_path)   # the same scene and training config
             trainer.load_checkpoint(ck)
             print(f"resumed from {ck} at iteration {trainer.iteration}")
-        write_json_atomic(out / "scene.json", {**scene_identity(scene, scene_path),
-                                               "protocol": getattr(scene, "protocol", {})})
+        write_scene_record(out, scene, scene_path)
         trainer.train()
         return _finish_run(trainer, scene, scene_path, out, cfg, evaluate_after)
+
+
+def write_scene_record(out: Path, scene, scene_path) -> None:
+    """Write ``out/scene.json``: what the run is trained on (``scene_identity``, checked on
+    resume) and the scene's evaluation protocol; every command that loads the run reads it."""
+    from baseline.guard import scene_identity
+
+    write_json_atomic(Path(out) / "scene.json", {**scene_identity(scene, scene_path),
+                                                 "protocol": getattr(scene, "protocol", {})})
 
 
 def _finish_run(trainer, scene, scene_path, out: Path, cfg: Config, evaluate_after: bool) -> dict:

@@ -468,13 +468,12 @@ def test_quant_cost_keeps_one_file_per_split(encoded, scene, scene_maker, tmp_pa
     import shutil
 
     from baseline.cli import main
-    from baseline.guard import scene_identity
-    from baseline.run import write_json_atomic
+    from baseline.run import write_scene_record
 
     run = tmp_path / "run"
     shutil.copytree(encoded["dir"] / "run", run)
     folder = scene_maker(n_views=12, width=64, height=48, seed=2)   # the `scene` fixture's
-    write_json_atomic(run / "scene.json", scene_identity(scene, folder))   # as `pgs train` does
+    write_scene_record(run, scene, folder)                          # as `pgs train` does
     assert main(["quant-cost", str(run)]) == 0
     test_json = (run / "quant_cost.json").read_text()
     assert main(["quant-cost", str(run), "--split", "train"]) == 0
