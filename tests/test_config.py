@@ -317,3 +317,18 @@ def test_truck_semantics3_records_are_what_their_command_plans_today(tmp_path):
                                              ["data.resolution=4"], [0, 1])}
     assert len(planned) == 12 and archived, planned
     assert archived <= planned, sorted(archived - planned)
+
+
+def test_truck_quant_ste_records_are_what_their_command_plans_today(tmp_path):
+    """docs/examples/truck-ste holds the `quant-ste` lever's truck runs at training semantics 3,
+    trained by the same code as truck-pos: each must be a run that `pgs compare
+    ../shared/data/tandt_truck -r 4 --patch cpu --vs predict-gs+quant-ste --vs quant-ste --seeds
+    0 1 --lambda 0.004 0.002 0.001` plans today (same config hash)."""
+    from baseline.experiment import parse_methods, plan_runs
+
+    runs = Path(__file__).parent.parent / "docs/examples/truck-ste/runs"
+    archived = {p.name for p in runs.iterdir()}
+    planned = {s.dir.name for s in plan_runs(tmp_path, parse_methods(["predict-gs+quant-ste", "quant-ste"]),
+                                             [0.004, 0.002, 0.001], ["cpu"], ["data.resolution=4"], [0, 1])}
+    assert archived and any(n.startswith("predict-gs+quant-ste-") for n in archived)
+    assert archived <= planned, sorted(archived - planned)
