@@ -8,7 +8,8 @@ checkpoints bit for bit.
 * hash-grid float kernels: the point-by-point loop of ``reference_grid_kernels``, on the
   binarized table of :class:`~baseline.hac.hashgrid.STEBinary`'s forward, and its backward
   as a ``torch.where``; the hash bits' count of ones and straight-through gradient as the
-  ``torch`` ops they replace.
+  ``torch`` ops they replace;
+* the visible-anchor prefilter's numba pass: the torch form that other devices run.
 """
 from __future__ import annotations
 
@@ -20,6 +21,7 @@ import torch
 
 from baseline.hac import _grid_kernels as K
 from baseline.hac._grid_kernels import DENSE
+from baseline.render import prefilter as P
 
 
 def _hashed(kinds):
@@ -50,13 +52,19 @@ def _ste_fill(params, g, out):
     out[...] = torch.where(torch.from_numpy(params).abs() <= 1.0, torch.tensor(g), 0.0).numpy()
 
 
+def _visible(p, cov, *rest):
+    """The prefilter's test as torch ops, written into the kernel's ``out`` (its last argument)."""
+    *terms, out = rest
+    out[...] = P._visible_torch(torch.from_numpy(p), torch.from_numpy(cov), *terms).numpy()
+
+
 @contextlib.contextmanager
 def reference_paths():
     """Every fast path replaced by its reference form inside the block."""
     with contextlib.ExitStack() as stack:
         for mod, name, ref in ((K, "grid_fwd", _grid_fwd), (K, "grid_bwd", _grid_bwd),
                                (K, "ste_mask", _ste_mask), (K, "count_nonneg", _count_nonneg),
-                               (K, "ste_fill", _ste_fill)):
+                               (K, "ste_fill", _ste_fill), (P, "_visible_kernel", _visible)):
             old = getattr(mod, name)
             setattr(mod, name, ref)
             stack.callback(setattr, mod, name, old)

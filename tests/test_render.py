@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
 import torch
 
@@ -543,6 +544,42 @@ def test_prefilter_closed_form_matches_the_matrix_form(seed):
     want = prefilter_anchors_matrix_form(xyz, scales, cam)
     assert 0.05 < want.float().mean() < 0.95
     assert not got[200:204].any()
+    assert torch.equal(got, want), int((got != want).sum())
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_prefilter_cpu_kernel_decides_as_the_torch_form(seed):
+    """On the CPU the visibility test runs as one numba pass; it must decide exactly as the
+    torch form that other devices run, on ordinary anchors and on hostile ones: NaN and inf in
+    positions and scales, scales whose squares overflow, depths at the near plane and at
+    +-0, centres far outside the image."""
+    from baseline.render import prefilter as P
+
+    g = torch.Generator().manual_seed(seed)
+    vm = torch.eye(4)
+    a = 0.4 + seed
+    vm[:3, :3] = torch.tensor([[math.cos(a), 0.0, math.sin(a)], [0.0, 1.0, 0.0],
+                               [-math.sin(a), 0.0, math.cos(a)]])
+    vm[:3, 3] = torch.randn(3, generator=g)
+    cam = Camera(viewmat=vm, fx=70.0, fy=65.0, cx=40.0, cy=27.0, width=96, height=64)
+    n = 30000
+    xyz = (torch.rand(n, 3, generator=g) * 2 - 1) * 10
+    scales = torch.exp(torch.randn(n, 3, generator=g) * 3 - 3)
+    bad = torch.tensor([float("nan"), float("inf"), -float("inf"), 3e38, -3e38, 1e-38, 0.0, -0.0])
+    xyz.view(-1)[torch.randint(0, 3 * n, (600,), generator=g)] = bad[torch.arange(600) % 8]
+    scales.view(-1)[torch.randint(0, 3 * n, (300,), generator=g)] = bad[torch.arange(300) % 8].abs()
+    # depths right at the near plane (0.2): camera-space points mapped back to the world
+    cam_p = torch.cat([torch.randn(300, 2, generator=g), torch.full((300, 1), 0.2)], 1)
+    cam_p[:150, 2] += torch.linspace(-1e-6, 1e-6, 150)
+    xyz[-300:] = ((cam_p.double() - vm[:3, 3].double()) @ vm[:3, :3].double()).float()
+
+    p, cov, terms = P._camera_space(xyz, scales, cam, None)
+    want = P._visible_torch(p, cov, *terms)
+    out = np.empty(n, dtype=np.bool_)
+    P._visible_kernel(p.numpy(), cov.numpy(), *terms, out)
+    got = P.prefilter_anchors(xyz, scales, cam)
+    assert 0.05 < want.float().mean() < 0.95
+    assert torch.equal(torch.from_numpy(out), want), int((torch.from_numpy(out) != want).sum())
     assert torch.equal(got, want), int((got != want).sum())
 
 

@@ -18,7 +18,9 @@ gradients.
 """
 from __future__ import annotations
 
+import numpy as np
 import torch
+from numba import njit
 from torch import Tensor
 
 from .conventions import CLIP_MARGIN, EPS2D
@@ -41,14 +43,27 @@ def prefilter_anchors(xyz: Tensor, scales: Tensor, camera, z_min: float | None =
     if xyz.dim() != 2 or xyz.shape[-1] != 3 or scales.shape != xyz.shape:
         raise ValueError(f"xyz and scales must both be [N, 3], got {tuple(xyz.shape)} and "
                          f"{tuple(scales.shape)}")
+    p, cov, terms = _camera_space(xyz, scales, camera, z_min)
+    if p.device.type == "cpu":
+        # One fused pass instead of ~60 torch ops over [N] float64 arrays (35.7 -> 7.4 ms per
+        # view at 165k anchors, one thread, the Intel Xeon): the same IEEE operations in the
+        # same order, with no FMA contraction, so the same decisions bit for bit (tests compare
+        # it with the torch form on hostile inputs).
+        out = np.empty(p.shape[0], dtype=np.bool_)
+        _visible_kernel(p.numpy(), cov.numpy(), *terms, out)
+        return torch.from_numpy(out)
+    return _visible_torch(p, cov, *terms)
+
+
+def _camera_space(xyz: Tensor, scales: Tensor, camera, z_min: float | None):
+    """float64 camera-space centres ``p`` [N,3], the six distinct entries of the camera-space
+    covariances ``cov`` [N,6], and the camera's scalars for the visibility test (near, fx, fy,
+    cx, cy, width, height, and the Jacobian's clamp of x/z and y/z: lo, hi, lo, hi)."""
     dt = torch.float64
     x = xyz.to(dt)
     vm = camera.viewmat.to(x.device, dt)
     R, t = vm[:3, :3], vm[:3, 3]
-    p = x @ R.T + t
-    z = p[:, 2]
-    z_ok = z > (float(camera.near) if z_min is None else z_min)
-    p_safe = torch.where(z_ok[:, None], p, torch.ones_like(p))
+    p = (x @ R.T + t).contiguous()
     # Written out element by element rather than as [N,3,3] / [N,2,3] batched products (which
     # torch runs as N tiny matrix products: ~40 ms for 165k anchors on one core, most of a
     # decoded frame's prefilter). cov_cam = R diag(s^2) R^T, as its six distinct entries from
@@ -57,13 +72,27 @@ def prefilter_anchors(xyz: Tensor, scales: Tensor, camera, z_min: float | None =
     s2 = scales.to(dt) ** 2
     ii, jj = (0, 0, 0, 1, 1, 2), (0, 1, 2, 1, 2, 2)
     A = torch.stack([R[list(ii), k] * R[list(jj), k] for k in range(3)])   # [3,6]
-    c00, c01, c02, c11, c12, c22 = (s2 @ A).unbind(-1)
+    cov = (s2 @ A).contiguous()
     fx, fy, cx, cy = float(camera.fx), float(camera.fy), float(camera.cx), float(camera.cy)
     w, h = float(camera.width), float(camera.height)
     tan_x, tan_y = 0.5 * w / fx, 0.5 * h / fy
+    near = float(camera.near) if z_min is None else float(z_min)
+    return p, cov, (near, fx, fy, cx, cy, w, h,
+                    -(cx / fx + CLIP_MARGIN * tan_x), (w - cx) / fx + CLIP_MARGIN * tan_x,
+                    -(cy / fy + CLIP_MARGIN * tan_y), (h - cy) / fy + CLIP_MARGIN * tan_y)
+
+
+def _visible_torch(p: Tensor, cov: Tensor, near: float, fx: float, fy: float, cx: float,
+                   cy: float, w: float, h: float, lox: float, hix: float, loy: float,
+                   hiy: float) -> Tensor:
+    """The visibility test of :func:`prefilter_anchors` from camera-space centres ``p`` [N,3]
+    and covariance entries ``cov`` [N,6] (float64) as torch ops: any device."""
+    z_ok = p[:, 2] > near
+    p_safe = torch.where(z_ok[:, None], p, torch.ones_like(p))
+    c00, c01, c02, c11, c12, c22 = cov.unbind(-1)
     px, py, pz = p_safe.unbind(-1)
-    u = (px / pz).clamp(-(cx / fx + CLIP_MARGIN * tan_x), (w - cx) / fx + CLIP_MARGIN * tan_x)
-    v = (py / pz).clamp(-(cy / fy + CLIP_MARGIN * tan_y), (h - cy) / fy + CLIP_MARGIN * tan_y)
+    u = (px / pz).clamp(lox, hix)
+    v = (py / pz).clamp(loy, hiy)
     j1, j3 = fx / pz, -fx * u / pz
     k2, k3 = fy / pz, -fy * v / pz
     a = j1 * j1 * c00 + 2 * j1 * j3 * c02 + j3 * j3 * c22 + EPS2D
@@ -77,8 +106,40 @@ def prefilter_anchors(xyz: Tensor, scales: Tensor, camera, z_min: float | None =
     r = torch.ceil(3.0 * torch.sqrt(torch.where(ok, lam_max, torch.ones_like(lam_max))))
     mx = fx * px / pz + cx
     my = fy * py / pz + cy
-    overlap = (mx + r > 0) & (mx - r < camera.width) & (my + r > 0) & (my - r < camera.height)
+    overlap = (mx + r > 0) & (mx - r < w) & (my + r > 0) & (my - r < h)
     return ok & overlap
+
+
+@njit(cache=True, error_model="numpy")
+def _visible_kernel(p, cov, near, fx, fy, cx, cy, w, h, lox, hix, loy, hiy, out):
+    """:func:`_visible_torch` point by point (NumPy float64 arrays, ``out`` [N] bool). Each
+    line is the torch form's expression in its order; comparisons are written so that NaN
+    passes through the clamps as torch.clamp passes it."""
+    for i in range(p.shape[0]):
+        z_ok = p[i, 2] > near
+        px, py, pz = (p[i, 0], p[i, 1], p[i, 2]) if z_ok else (1.0, 1.0, 1.0)
+        c00, c01, c02, c11, c12, c22 = cov[i, 0], cov[i, 1], cov[i, 2], cov[i, 3], cov[i, 4], cov[i, 5]
+        u = px / pz
+        u = lox if u < lox else (hix if u > hix else u)
+        v = py / pz
+        v = loy if v < loy else (hiy if v > hiy else v)
+        # torch evaluates ``scalar / tensor`` as ``tensor.reciprocal() * scalar``
+        j1, j3 = (1.0 / pz) * fx, -fx * u / pz
+        k2, k3 = (1.0 / pz) * fy, -fy * v / pz
+        a = j1 * j1 * c00 + 2 * j1 * j3 * c02 + j3 * j3 * c22 + EPS2D
+        b = j1 * k2 * c01 + j1 * k3 * c02 + j3 * k2 * c12 + j3 * k3 * c22
+        c = k2 * k2 * c11 + 2 * k2 * k3 * c12 + k3 * k3 * c22 + EPS2D
+        det = a * c - b * b
+        ok = (z_ok and np.isfinite(a) and np.isfinite(b) and np.isfinite(c) and np.isfinite(det)
+              and det > 0)
+        mid = 0.5 * (a + c)
+        q = mid * mid - det
+        q = 0.1 if q < 0.1 else q
+        lam_max = mid + np.sqrt(q)
+        r = np.ceil(3.0 * np.sqrt(lam_max if ok else 1.0))
+        mx = fx * px / pz + cx
+        my = fy * py / pz + cy
+        out[i] = ok and (mx + r > 0) and (mx - r < w) and (my + r > 0) and (my - r < h)
 
 
 @torch.no_grad()
