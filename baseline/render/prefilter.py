@@ -5,16 +5,18 @@ first three of exp(scaling)). An anchor is visible when
 
 * its camera-space z is > ``camera.near`` (0.2 by default, ``data.near``: Scaffold-GS and HAC
   cull anchors and Gaussians at the same depth),
-* its EWA 2D covariance, *after* the 0.3 px^2 diagonal dilation, has det > 0 (always true for
-  finite inputs: the dilation makes it positive definite; what this rejects in practice is
-  non-finite values), and
+* its EWA 2D covariance, *after* the 0.3 px^2 diagonal dilation, has det > 0 (true in exact
+  arithmetic: the dilation makes it positive definite; what this rejects in practice is
+  non-finite values, and scales so large, ~1e38, that ``a c - b^2`` cancels to <= 0), and
 * its 3-sigma box overlaps the image: with ``r = ceil(3 sqrt(lambda_max))`` pixels
   (``lambda_max`` the larger eigenvalue of the dilated 2D covariance, as the original 3DGS
   rasterizer's ``markVisible``), the square ``[mx - r, mx + r] x [my - r, my + r]`` must
   overlap ``[0, W] x [0, H]`` (strictly, on pixel coordinates rather than 16-pixel tiles).
 
 The projection uses the same clamped Jacobian as the rasterizer. Computed in float64 without
-gradients.
+gradients: two small matrix products in torch, then the test itself, as torch operations on
+other devices and as one numba loop over the anchors on the CPU (the same operations in the
+same order, so the same decisions).
 """
 from __future__ import annotations
 
