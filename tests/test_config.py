@@ -319,16 +319,20 @@ def test_truck_semantics3_records_are_what_their_command_plans_today(tmp_path):
     assert archived <= planned, sorted(archived - planned)
 
 
-def test_truck_quant_ste_records_are_what_their_command_plans_today(tmp_path):
-    """docs/examples/truck-ste holds the `quant-ste` lever's truck runs at training semantics 3,
+@pytest.mark.parametrize("example, methods", [
+    ("truck-ste", ["predict-gs+quant-ste", "quant-ste"]),
+    ("truck-sfpctx", ["predict-gs+sfp-context"]),
+])
+def test_truck_lever_records_are_what_their_command_plans_today(tmp_path, example, methods):
+    """docs/examples/truck-ste and truck-sfpctx hold levers' truck runs at training semantics 3,
     trained by the same code as truck-pos: each must be a run that `pgs compare
-    ../shared/data/tandt_truck -r 4 --patch cpu --vs predict-gs+quant-ste --vs quant-ste --seeds
-    0 1 --lambda 0.004 0.002 0.001` plans today (same config hash)."""
+    ../shared/data/tandt_truck -r 4 --patch cpu --vs M [--vs M2] --seeds 0 1 --lambda 0.004
+    0.002 0.001` plans today (same config hash)."""
     from baseline.experiment import parse_methods, plan_runs
 
-    runs = Path(__file__).parent.parent / "docs/examples/truck-ste/runs"
+    runs = Path(__file__).parent.parent / "docs/examples" / example / "runs"
     archived = {p.name for p in runs.iterdir()}
-    planned = {s.dir.name for s in plan_runs(tmp_path, parse_methods(["predict-gs+quant-ste", "quant-ste"]),
-                                             [0.004, 0.002, 0.001], ["cpu"], ["data.resolution=4"], [0, 1])}
-    assert archived and any(n.startswith("predict-gs+quant-ste-") for n in archived)
+    planned = {s.dir.name for s in plan_runs(tmp_path, parse_methods(methods), [0.004, 0.002, 0.001],
+                                             ["cpu"], ["data.resolution=4"], [0, 1])}
+    assert archived and any(n.startswith(methods[0] + "-") for n in archived)
     assert archived <= planned, sorted(archived - planned)
