@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import numpy as np
 import torch
-from numba import njit
 from torch import Tensor
 
 from .conventions import CLIP_MARGIN, EPS2D
@@ -47,10 +46,10 @@ def prefilter_anchors(xyz: Tensor, scales: Tensor, camera, z_min: float | None =
                          f"{tuple(scales.shape)}")
     p, cov, terms = _camera_space(xyz, scales, camera, z_min)
     if p.device.type == "cpu":
-        # One fused pass instead of ~60 torch ops over [N] float64 arrays (35.7 -> 7.4 ms per
-        # view at 165k anchors, one thread, the Intel Xeon): the same IEEE operations in the
-        # same order, with no FMA contraction, so the same decisions bit for bit (tests compare
-        # it with the torch form on hostile inputs).
+        # One fused pass instead of ~60 torch ops over [N] float64 arrays (about 4x faster at
+        # truck's 165k anchors: docs/RESULTS.md, "Speed (CPU)"): the same IEEE operations in
+        # the same order, with no FMA contraction, so the same decisions bit for bit (tests
+        # compare it with the torch form on hostile inputs).
         out = np.empty(p.shape[0], dtype=np.bool_)
         _visible_kernel(p.numpy(), cov.numpy(), *terms, out)
         return torch.from_numpy(out)
@@ -112,8 +111,22 @@ def _visible_torch(p: Tensor, cov: Tensor, near: float, fx: float, fy: float, cx
     return ok & overlap
 
 
-@njit(cache=True, error_model="numpy")
-def _visible_kernel(p, cov, near, fx, fy, cx, cy, w, h, lox, hix, loy, hiy, out):
+_compiled_loop = None
+
+
+def _visible_kernel(p, cov, near, fx, fy, cx, cy, w, h, lox, hix, loy, hiy, out) -> None:
+    """:func:`_visible_loop` compiled by numba, which is imported and compiles it (or loads it
+    from its disk cache) on the first call, as the rasterizer's kernels are: importing the
+    package does not import numba."""
+    global _compiled_loop
+    if _compiled_loop is None:
+        from numba import njit
+
+        _compiled_loop = njit(cache=True, error_model="numpy")(_visible_loop)
+    _compiled_loop(p, cov, near, fx, fy, cx, cy, w, h, lox, hix, loy, hiy, out)
+
+
+def _visible_loop(p, cov, near, fx, fy, cx, cy, w, h, lox, hix, loy, hiy, out):
     """:func:`_visible_torch` point by point (NumPy float64 arrays, ``out`` [N] bool). Each
     line is the torch form's expression in its order; comparisons are written so that NaN
     passes through the clamps as torch.clamp passes it."""
