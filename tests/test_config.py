@@ -298,6 +298,22 @@ def test_config_list_groups_the_patches_by_kind(capsys):
             assert patch_infos()[line.split()[0]].kind == kind
 
 
+def _archived_runs_are_planned(tmp_path, example, methods, lambdas, first=None) -> set:
+    """Assert that docs/examples/<example>/runs holds runs (of method ``first`` among them, if
+    given) and only runs that today's truck command plans (`-r 4 --patch cpu`, seeds 0 and 1,
+    same config hashes); returns the planned run folders' names."""
+    from baseline.experiment import plan_runs
+
+    runs = Path(__file__).parent.parent / "docs/examples" / example / "runs"
+    archived = {p.name for p in runs.iterdir()}
+    planned = {s.dir.name for s in plan_runs(tmp_path, methods, lambdas, ["cpu"],
+                                             ["data.resolution=4"], [0, 1])}
+    assert archived, example
+    assert first is None or any(n.startswith(first + "-") for n in archived), sorted(archived)
+    assert archived <= planned, sorted(archived - planned)
+    return planned
+
+
 def test_truck_semantics3_records_are_what_their_command_plans_today(tmp_path):
     """docs/examples/truck-pos holds truck's runs at training semantics 3 (the 16-bit positions),
     archived as the adopted protocol's curves finish: every one must be a run today's command
@@ -305,18 +321,13 @@ def test_truck_semantics3_records_are_what_their_command_plans_today(tmp_path):
     must no longer be reported as this code's runs. The command: `pgs compare
     ../shared/data/tandt_truck -r 4 --patch cpu --vs predict-gs --seeds 0 1 --lambda-for HAC
     0.008 0.004 0.002 --lambda-for Predict-GS 0.004 0.002 0.001`."""
-    from baseline.experiment import parse_methods, plan_runs, with_own_lambdas
+    from baseline.experiment import parse_methods, with_own_lambdas
 
-    common = ["cpu"]
     methods = with_own_lambdas(parse_methods(["predict-gs"]),
                                [["HAC", "0.008", "0.004", "0.002"],
-                                ["Predict-GS", "0.004", "0.002", "0.001"]], common)
-    runs = Path(__file__).parent.parent / "docs/examples/truck-pos/runs"
-    archived = {p.name for p in runs.iterdir()}
-    planned = {s.dir.name for s in plan_runs(tmp_path, methods, [0.004], common,
-                                             ["data.resolution=4"], [0, 1])}
-    assert len(planned) == 12 and archived, planned
-    assert archived <= planned, sorted(archived - planned)
+                                ["Predict-GS", "0.004", "0.002", "0.001"]], ["cpu"])
+    planned = _archived_runs_are_planned(tmp_path, "truck-pos", methods, [0.004])
+    assert len(planned) == 12, planned
 
 
 @pytest.mark.parametrize("example, methods", [
@@ -328,11 +339,7 @@ def test_truck_lever_records_are_what_their_command_plans_today(tmp_path, exampl
     trained by the same code as truck-pos: each must be a run that `pgs compare
     ../shared/data/tandt_truck -r 4 --patch cpu --vs M [--vs M2] --seeds 0 1 --lambda 0.004
     0.002 0.001` plans today (same config hash)."""
-    from baseline.experiment import parse_methods, plan_runs
+    from baseline.experiment import parse_methods
 
-    runs = Path(__file__).parent.parent / "docs/examples" / example / "runs"
-    archived = {p.name for p in runs.iterdir()}
-    planned = {s.dir.name for s in plan_runs(tmp_path, parse_methods(methods), [0.004, 0.002, 0.001],
-                                             ["cpu"], ["data.resolution=4"], [0, 1])}
-    assert archived and any(n.startswith(methods[0] + "-") for n in archived)
-    assert archived <= planned, sorted(archived - planned)
+    _archived_runs_are_planned(tmp_path, example, parse_methods(methods), [0.004, 0.002, 0.001],
+                               first=methods[0])
