@@ -533,6 +533,34 @@ def test_scene_facts_tool(decoded_files, capsys):
         tool.main([str(decoded_files["scene"]), "--runs", str(decoded_files["scene"])])
 
 
+def test_grid_point_order_probe(decoded_files):
+    """tools/probes/grid_point_order.py: each grid of a run (HAC: the entropy context; Predict-GS:
+    that and the SFP's grid) timed in the model's, Morton and a random point order, whose forward
+    values it checks to be the model order's, permuted; the Morton order sorts by Z-code."""
+    import importlib.util
+    import json
+    import pathlib
+
+    spec = importlib.util.spec_from_file_location(
+        "grid_point_order", pathlib.Path(__file__).parents[1] / "tools" / "probes" / "grid_point_order.py")
+    tool = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(tool)
+    u = torch.tensor([[0.9, 0.9, 0.9], [0.0, 0.0, 0.0], [0.6, 0.0, 0.0], [0.0, 0.6, 0.0]])
+    assert tool.morton_order(u).tolist() == [1, 2, 3, 0]
+    for name in ("baseline", "predict-gs"):    # run folders as `pgs train` leaves them
+        rec = decoded_files[name] / "scene.json"
+        if not rec.exists():
+            rec.write_text(json.dumps({"path": str(decoded_files["scene"])}))
+    hac = tool.probe_run(str(decoded_files["baseline"]), views=2, repeats=1)
+    pgs = tool.probe_run(str(decoded_files["predict-gs"]), views=2, repeats=1)
+    assert [r["grid"] for r in hac] == ["entropy context"] * 2
+    assert [r["grid"] for r in pgs] == ["entropy context"] * 2 + ["feature provider"] * 2
+    for r in hac + pgs:
+        assert r["points"] > 0 and r["levels"] > 0
+        assert all(t > 0 for o in ("model", "Morton", "random") for t in r[o]) and r["corners only"] > 0
+    assert "feature provider" in tool.format_rows(pgs)
+
+
 def test_kept_share_probe_tool(small_scene, capsys):
     """tools/probes/kept_share_probe.py: with one seed it measures HAC's and Predict-GS's start (one row
     each; with the SFP's earlier zero fusion layer, f_c = 0 as HAC's features, the two starts are
