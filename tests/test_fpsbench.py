@@ -77,13 +77,19 @@ def test_bench_rows_contenders_and_counts(files):
     assert res["views"] == len(sc.test_cameras) and res["split"] == "test"
     body = format_fps_bench(res).splitlines()[3:-1]              # one line per row, in order
     assert [ln.startswith(r["label"] + " ") for ln, r in zip(body, res["rows"])] == [True] * 5
-    assert body[0].split()[-2:] == ["ref", "ref"]                   # the reference row
-    assert body[1].split()[-1] == "ref"                 # the first model's baked form
+    assert body[0].split()[-3:] == ["ref", "ref", "-"]              # the reference row
+    assert body[1].split()[-2] == "ref"                 # the first model's baked form
     for ln, r in zip(body[1:], res["rows"][1:]):
         assert f"{r['ratio']:.3f} {r['ratio_min']:.3f}-{r['ratio_max']:.3f}" in " ".join(ln.split())
     for ln, r in zip(body[2:], res["rows"][2:]):
-        assert ln.split()[-2:] == [f"{r['ratio_form']:.3f}",
-                                   f"{r['ratio_form_min']:.3f}-{r['ratio_form_max']:.3f}"]
+        assert ln.split()[-3:-1] == [f"{r['ratio_form']:.3f}",
+                                     f"{r['ratio_form_min']:.3f}-{r['ratio_form_max']:.3f}"]
+    # each form's images against its model's plain form: none for plain, small for the others
+    # (baked: the first layers' sums in another order), exactly equal without the f_c cache
+    diffs = [r["max_image_diff"] for r in rows]
+    assert diffs[0] is None and diffs[2] is None
+    assert 0 <= diffs[1] < 1e-4 and 0 <= diffs[3] < 1e-4 and diffs[4] == 0.0
+    assert [ln.split()[-1] for ln in body] == ["-", f"{diffs[1]:.2g}", "-", f"{diffs[3]:.2g}", "0"]
     # decoded models are left as decoded: the f_c cache built again after the no-cache rounds
     dec = decode_model(files["predict-gs"] / "model.pgs")
     contenders = fpsbench.contenders_of("m", dec.model)

@@ -14,7 +14,9 @@ with its cache: how a decoded model renders), ``baked``
 (:mod:`baseline.scaffold.baked`: the view-independent part of every decoder head computed once)
 and, for a provider with a cache, ``no cache`` (features recomputed every view). Besides the
 ratio to the first contender, each row has its ratio to the first model in the same form (its
-``plain`` form where it has no such form), so engines compare like with like.
+``plain`` form where it has no such form), so engines compare like with like, and the largest
+difference of its images from its model's ``plain`` form's (:func:`form_image_differences`):
+speed beside what it changes in the frames.
 """
 from __future__ import annotations
 
@@ -105,6 +107,43 @@ def _time_views(c: Contender, cameras, background, backend: str) -> tuple[float,
     return total / len(cameras), count / len(cameras)
 
 
+def _restore(contenders: Sequence[Contender]) -> None:
+    """Leave the models as decoded: the feature cache on, not baked."""
+    for c in contenders:
+        if c.cache is False:
+            _set_cache(c.model, True)
+        c.model.baked = None
+
+
+@torch.no_grad()
+def form_image_differences(contenders: Sequence[Contender], cameras, background: torch.Tensor,
+                           backend: str = "auto") -> List[Optional[float]]:
+    """Per contender, the largest absolute difference between its rendered images and its
+    model's ``plain`` form's on ``cameras`` (None for a plain contender or a model without
+    one): what a faster form changes in the frames. Untimed; one view at a time, so memory
+    does not grow with the number of views. NaN if any compared pixel is NaN."""
+    plain = {c.model_index: i for i, c in enumerate(contenders) if c.form == "plain"}
+    worst: List[Optional[torch.Tensor]] = [
+        torch.zeros(()) if c.form != "plain" and c.model_index in plain else None
+        for c in contenders]
+    for cam in cameras:
+        for mi, p in plain.items():
+            others = [i for i, c in enumerate(contenders) if c.model_index == mi
+                      and worst[i] is not None]
+            if not others:
+                continue
+            _prepare(contenders[p])
+            ref = render_view(contenders[p].model, cam, background, phase="decoded",
+                              backend=backend).render.image
+            for i in others:
+                _prepare(contenders[i])
+                img = render_view(contenders[i].model, cam, background, phase="decoded",
+                                  backend=backend).render.image
+                worst[i] = torch.maximum(worst[i], (img - ref).abs().max().cpu())
+    _restore(contenders)
+    return [None if w is None else float(w) for w in worst]
+
+
 def run_fps_bench(contenders: Sequence[Contender], cameras, background: torch.Tensor, *,
                   rounds: int = 5, backend: str = "auto", warmup: bool = True) -> List[dict]:
     """Time every contender on ``cameras``, ``rounds`` times, in an order rotated each round.
@@ -140,10 +179,7 @@ def run_fps_bench(contenders: Sequence[Contender], cameras, background: torch.Te
             i = (j + r) % n
             _prepare(contenders[i])
             times[i][r], gaussians[i] = _time_views(contenders[i], cameras, background, backend)
-    for c in contenders:            # leave models as decoded (cache on, not baked)
-        if c.cache is False:
-            _set_cache(c.model, True)
-        c.model.baked = None
+    _restore(contenders)
     ref_of_form = {}                # form -> the reference model's contender in that form
     for i, c in enumerate(contenders):
         if c.model_index == contenders[0].model_index:
@@ -258,6 +294,8 @@ def _bench_files(paths, scene, rounds, device, max_views) -> dict:
     contenders = [c for k, (label, dec) in enumerate(decoded)
                   for c in contenders_of(label, dec.model, model_index=k)]
     rows = run_fps_bench(contenders, cams, bg, rounds=rounds, backend=backend)
+    for r, d in zip(rows, form_image_differences(contenders, cams, bg, backend)):
+        r["max_image_diff"] = d
     return dict(rows=rows, views=len(cams), split=split,
                 rounds=rounds, threads=torch.get_num_threads(), device=device_name(dev),
                 backend=resolve_backend(backend, decoded[0][1].model.xyz),
@@ -448,8 +486,9 @@ def format_fps_bench(res: dict) -> str:
              f"{res['rounds']} rounds (order rotated), {res['threads']} thread(s), "
              f"{res['device']}, backend {res['backend']}",
              f"{'model':<{w}}  {'Gaussians/view':>14}  {'FPS':>7}  {'FPS range':>15}  "
-             f"{'x ref':>6}  {'x ref range':>13}  {'x same form':>11}  {'range':>13}",
-             "-" * (w + 93)]
+             f"{'x ref':>6}  {'x ref range':>13}  {'x same form':>11}  {'range':>13}  "
+             f"{'max |img - plain|':>17}",
+             "-" * (w + 112)]
     for i, r in enumerate(rows):
         ref = "ref" if i == 0 else f"{r['ratio']:.3f}"
         rng = "" if i == 0 else f"{r['ratio_min']:.3f}-{r['ratio_max']:.3f}"
@@ -458,13 +497,16 @@ def format_fps_bench(res: dict) -> str:
             sf, sr = "ref", ""
         else:
             sf, sr = f"{same:.3f}", f"{r['ratio_form_min']:.3f}-{r['ratio_form_max']:.3f}"
+        d = r.get("max_image_diff")
+        dd = "-" if d is None else f"{d:.2g}"
         lines.append(f"{r['label']:<{w}}  {r['gaussians_per_view']:>14,.0f}  {r['fps']:>7.2f}  "
                      f"{r['fps_min']:>7.2f}-{r['fps_max']:<7.2f}  {ref:>6}  {rng:>13}  "
-                     f"{sf:>11}  {sr:>13}")
+                     f"{sf:>11}  {sr:>13}  {dd:>17}")
     lines.append("FPS = 1 / median over rounds of the mean time per view (prefilter + Gaussian "
                  "decoding + rasterization); x ref = reference time / this time per round "
                  "(> 1: faster), median and range over rounds; x same form: the same against "
                  "the first model in this row's form (plain: decode as decoded, f_c cache on; "
                  "baked: view-independent head terms precomputed; no cache: f_c recomputed), "
-                 "or its plain form.")
+                 "or its plain form; max |img - plain|: the largest difference of this form's "
+                 "images from its model's plain form's over the views (untimed; - for plain).")
     return "\n".join(lines)
