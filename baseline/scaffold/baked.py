@@ -22,9 +22,9 @@ logit is within rounding of 0 may be kept by one form and not the other (its opa
 ~1e-7: invisible). Tests compare the two forms on trained models, image and Gaussians.
 
 The bake holds ``(N, H)`` floats for H hidden units in all (baseline 3 x 50 = 150; with a
-refiner of 2 x 64 more, 278), built by :meth:`AnchorModel.bake`. Decoded models are baked where
-that was measured faster, on CUDA (:meth:`AnchorModel.bake_if_faster`); ``pgs bench fps`` times
-both forms anywhere.
+refiner of 2 x 64 more, 278), built by :meth:`AnchorModel.bake`. Decoded models are baked on CUDA
+(:meth:`AnchorModel.bake_if_faster`; on the CPU they stay plain, whose frames are the records');
+``pgs bench fps`` times both forms anywhere and prints how far their images differ.
 """
 from __future__ import annotations
 
