@@ -5,6 +5,7 @@ import pytest
 import torch
 
 from baseline.modelfile import encode_model
+from baseline.run import write_scene_record
 from baseline.config import build_config
 from baseline.data.scene import load_scene
 from baseline.data.synthetic import make_scene
@@ -56,7 +57,7 @@ def small_scene(tmp_path_factory):
 
 @pytest.fixture(scope="session")
 def decoded_files(tmp_path_factory):
-    """A baseline and a Predict-GS ``model.pgs`` of the same small scene (short trainings, the
+    """A baseline and a Predict-GS run folder (``model.pgs``, checkpoint, ``scene.json``) of the same small scene (short trainings, the
     demo preset), plus the baseline's model written without its scene and with a copy of it:
     ``{"scene", "baseline", "predict-gs", "noscene", "elsewhere"}`` (run folders / files)."""
     d = tmp_path_factory.mktemp("fpsbench")
@@ -71,6 +72,7 @@ def decoded_files(tmp_path_factory):
         t.train()
         encode_model(t.cfg, t.model, t.entropy, d / name / "model.pgs",
                      extra_header={"scene": str(d / "scene")})
+        write_scene_record(d / name, scene, d / "scene")   # a run folder as `pgs train` leaves it
         out[name] = d / name
         if name == "baseline":          # the same model: a file without its scene, one elsewhere
             encode_model(t.cfg, t.model, t.entropy, d / "noscene.pgs")

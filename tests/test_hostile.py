@@ -14,7 +14,6 @@ from baseline.testing.hostile import crafted_cases, run_cases
 
 def test_hostile_files_are_refused_cleanly(decoded_files, tmp_path):
     import dataclasses
-    import json
 
     from baseline.modelfile import encode_model
     from baseline.run import load_run
@@ -24,8 +23,6 @@ def test_hostile_files_are_refused_cleanly(decoded_files, tmp_path):
     # the compact codec too: sorted positions (their count not fixed by the section's length),
     # mask patterns, used grid entries
     run = decoded_files["predict-gs"]
-    if not (run / "scene.json").exists():
-        (run / "scene.json").write_text(json.dumps({"path": str(decoded_files["scene"])}))
     t, _ = load_run(run, device="cpu")
     cfg = dataclasses.replace(t.cfg, codec=dataclasses.replace(
         t.cfg.codec, positions="sorted", masks="patterns", grids="used"))
@@ -53,14 +50,11 @@ def test_hostile_lattice_position_files_are_refused_cleanly(decoded_files, tmp_p
     (depth, origin, voxel size), its payload replaced (dense all-ones claims, zeros, none) and
     the file truncated or flipped: refused cleanly, never a crash or a blow-up."""
     import dataclasses
-    import json
 
     from baseline.modelfile import encode_model
     from baseline.run import load_run
 
     run = decoded_files["baseline"]
-    if not (run / "scene.json").exists():
-        (run / "scene.json").write_text(json.dumps({"path": str(decoded_files["scene"])}))
     t, _ = load_run(run, device="cpu")
     cfg = dataclasses.replace(t.cfg, codec=dataclasses.replace(t.cfg.codec, positions="lattice"))
     encode_model(cfg, t.model, t.entropy, tmp_path / "lattice.pgs",

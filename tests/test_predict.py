@@ -538,7 +538,6 @@ def test_grid_point_order_probe(decoded_files):
     that and the SFP's grid) timed in the model's, Morton and a random point order, whose forward
     values it checks to be the model order's, permuted; the Morton order sorts by Z-code."""
     import importlib.util
-    import json
     import pathlib
 
     spec = importlib.util.spec_from_file_location(
@@ -547,10 +546,6 @@ def test_grid_point_order_probe(decoded_files):
     spec.loader.exec_module(tool)
     u = torch.tensor([[0.9, 0.9, 0.9], [0.0, 0.0, 0.0], [0.6, 0.0, 0.0], [0.0, 0.6, 0.0]])
     assert tool.morton_order(u).tolist() == [1, 2, 3, 0]
-    for name in ("baseline", "predict-gs"):    # run folders as `pgs train` leaves them
-        rec = decoded_files[name] / "scene.json"
-        if not rec.exists():
-            rec.write_text(json.dumps({"path": str(decoded_files["scene"])}))
     hac = tool.probe_run(str(decoded_files["baseline"]), views=2, repeats=1)
     pgs = tool.probe_run(str(decoded_files["predict-gs"]), views=2, repeats=1)
     assert [r["grid"] for r in hac] == ["entropy context"] * 2

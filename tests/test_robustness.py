@@ -228,7 +228,6 @@ def test_a_decode_over_the_machine_under_a_raised_budget_is_named(decoded_files,
 def run_copy(decoded_files, tmp_path):
     run = tmp_path / "run"
     shutil.copytree(decoded_files["baseline"], run)
-    (run / "scene.json").write_text(json.dumps({"path": str(decoded_files["scene"])}))
     return run
 
 
@@ -258,7 +257,6 @@ def test_a_file_far_outside_its_scene_is_refused_at_encode_and_decode(decoded_fi
 
     run = tmp_path / "run"
     shutil.copytree(decoded_files["baseline"], run)
-    (run / "scene.json").write_text(json.dumps({"path": str(decoded_files["scene"])}))
     t, scene = load_run(run, device="cpu")
     with torch.no_grad():
         t.model.per_anchor["xyz"][0] = 1e30
