@@ -109,6 +109,36 @@ class _Fake:
         self.xyz = torch.zeros(1, 3)
 
 
+def test_form_image_differences_over_chunks_and_nan(monkeypatch):
+    """The largest |form - plain| per form over every view, across chunks of views (10 views in
+    chunks of 4), each form rendered with its own set-up; NaN propagates; a model with no plain
+    form and the plain forms themselves get None."""
+    from types import SimpleNamespace
+
+    m, lone = _Fake(), _Fake()
+    baked_tag, other_tag = object(), object()
+    plain = Contender("m", m, None, "plain", model_index=0)
+    baked = Contender("m (baked)", m, None, "baked", baked_tag, 0)
+    other = Contender("m (other)", m, None, "baked", other_tag, 0)
+    orphan = Contender("x (baked)", lone, None, "baked", baked_tag, 1)
+    views = list(range(10))
+
+    def fake_render(model, cam, background, phase, backend):
+        img = torch.zeros(3, 2, 2)
+        if model.baked is baked_tag:
+            img[0, 0, 0] = 1e-3 * (cam + 1)              # largest on the last view: 0.01
+        elif model.baked is other_tag and cam == 9:
+            img[1, 1, 1] = float("nan")
+        return SimpleNamespace(render=SimpleNamespace(image=img))
+
+    monkeypatch.setattr(fpsbench, "render_view", fake_render)
+    got = fpsbench.form_image_differences([plain, baked, other, orphan], views, torch.zeros(3),
+                                          chunk=4)
+    assert got[0] is None and got[3] is None
+    assert got[1] == pytest.approx(1e-2) and math.isnan(got[2])
+    assert m.baked is None and lone.baked is None                  # left as decoded
+
+
 def test_rotation_and_ratio_arithmetic(monkeypatch):
     """Round r times contender (j + r) % n at position j; FPS = 1 / median time; ratio per round."""
     a, b, c = (Contender(x, _Fake(), None) for x in "abc")

@@ -117,29 +117,36 @@ def _restore(contenders: Sequence[Contender]) -> None:
 
 @torch.no_grad()
 def form_image_differences(contenders: Sequence[Contender], cameras, background: torch.Tensor,
-                           backend: str = "auto") -> List[Optional[float]]:
+                           backend: str = "auto", chunk: int = 8) -> List[Optional[float]]:
     """Per contender, the largest absolute difference between its rendered images and its
     model's ``plain`` form's on ``cameras`` (None for a plain contender or a model without
-    one): what a faster form changes in the frames. Untimed; one view at a time, so memory
-    does not grow with the number of views. NaN if any compared pixel is NaN."""
+    one): what a faster form changes in the frames. Untimed. The views go ``chunk`` at a time:
+    the plain images of a chunk are kept while each other form renders it, so memory does not
+    grow with the number of views and each form is set up once per chunk (setting up the
+    uncached form drops a feature cache the plain form then rebuilds). NaN if any compared
+    pixel is NaN."""
     plain = {c.model_index: i for i, c in enumerate(contenders) if c.form == "plain"}
-    worst: List[Optional[torch.Tensor]] = [
-        torch.zeros(()) if c.form != "plain" and c.model_index in plain else None
-        for c in contenders]
-    for cam in cameras:
-        for mi, p in plain.items():
-            others = [i for i, c in enumerate(contenders) if c.model_index == mi
-                      and worst[i] is not None]
-            if not others:
+    others = {mi: [i for i, c in enumerate(contenders) if c.model_index == mi and i != p]
+              for mi, p in plain.items()}
+    worst: List[Optional[torch.Tensor]] = [None] * len(contenders)
+    for ids in others.values():
+        for i in ids:
+            worst[i] = torch.zeros(())
+
+    def images(c: Contender, cams) -> list:
+        _prepare(c)
+        return [render_view(c.model, cam, background, phase="decoded",
+                            backend=backend).render.image for cam in cams]
+
+    for s in range(0, len(cameras), max(chunk, 1)):
+        cams = cameras[s:s + max(chunk, 1)]
+        for mi, ids in others.items():
+            if not ids:
                 continue
-            _prepare(contenders[p])
-            ref = render_view(contenders[p].model, cam, background, phase="decoded",
-                              backend=backend).render.image
-            for i in others:
-                _prepare(contenders[i])
-                img = render_view(contenders[i].model, cam, background, phase="decoded",
-                                  backend=backend).render.image
-                worst[i] = torch.maximum(worst[i], (img - ref).abs().max().cpu())
+            refs = images(contenders[plain[mi]], cams)
+            for i in ids:
+                for img, ref in zip(images(contenders[i], cams), refs):
+                    worst[i] = torch.maximum(worst[i], (img - ref).abs().max().cpu())
     _restore(contenders)
     return [None if w is None else float(w) for w in worst]
 
