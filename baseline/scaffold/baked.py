@@ -21,8 +21,8 @@ What changes against :meth:`AnchorModel.decode`: the first layer's sums run in a
 logit is within rounding of 0 may be kept by one form and not the other (its opacity is then
 ~1e-7: invisible), and where a Gaussian's alpha at a pixel lies within rounding of the
 rasterizer's 1/255 cut-off, one form composites it and the other skips it: a few pixels move
-by up to about 1/255 (0.0034 on a truck model's 32 test views, ``pgs bench fps``). Tests compare
-the two forms on trained models, image and Gaussians.
+by up to about 1/255 (``pgs bench fps`` prints the largest difference). Tests compare the two
+forms on trained models, image and Gaussians.
 
 The bake holds ``(N, H)`` floats for H hidden units in all (baseline 3 x 50 = 150; with a
 refiner of 2 x 64 more, 278), built by :meth:`AnchorModel.bake`. Decoded models are baked on CUDA

@@ -185,13 +185,12 @@ class AnchorModel(nn.Module):
         self.baked = None
 
     def bake_if_faster(self) -> bool:
-        """Bake a decoded model on CUDA, where baking is faster. On the CPU it is faster too on
-        trained truck models (10-18%), but it is not the same frame: its first layers sum in
-        another order, so an alpha within rounding of the rasterizer's 1/255 cut-off may be
-        composited by one form and skipped by the other (pixels move by up to ~3e-3). A model
-        decoded on the CPU stays plain, so its renders are the records' bit for bit
-        (docs/RESULTS.md, "Speed (CPU)"; ``pgs bench fps`` times both forms and prints their
-        image difference).
+        """Bake a decoded model on CUDA, where baking is faster. On the CPU it can be faster
+        too, but it is not the same frame: its first layers sum in another order, so an alpha
+        within rounding of the rasterizer's 1/255 cut-off may be composited by one form and
+        skipped by the other. A model decoded on the CPU stays plain, so its renders are the
+        records' bit for bit (measurements: docs/RESULTS.md, "Speed (CPU)"; ``pgs bench fps``
+        times both forms and prints their image difference).
         Returns whether the model is now baked."""
         if self.fixed_values is None or not self.xyz.is_cuda:
             self.baked = None

@@ -53,8 +53,7 @@ def _corners_only(u, res, rows, offsets, kinds, strides):
             if not K._inside(u, i, dim):
                 continue
             if dim == 3:
-                ix, w, wn = K._level3(u[i, 0], u[i, 1], u[i, 2], r, kind, nr, strides[l, 1],
-                                      strides[l, 2])
+                ix, w, wn = K._level3(u[i, 0], u[i, 1], u[i, 2], r, kind, nr, sy, strides[l, 2])
                 sink += np.float64(ix[0] + ix[7] + off) + w[3] + wn
             else:
                 ix2, w2, wn2 = K._level2(u[i, 0], u[i, 1], r, kind, nr, sy)
