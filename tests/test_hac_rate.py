@@ -125,6 +125,10 @@ def test_rate_term_by_hand():
     assert float(rate) == pytest.approx(38 / (2 * 86) * 0.75 + 860 / (100 * 86))
     rate, bpv = rate_term({}, 0, 0.5, None, 10, 86)
     assert rate == 0.0 and bpv is None
+    # the hash bits' own denominator H: the sampled part keeps V
+    rate, bpv = rate_term(bits, 2, 0.75, torch.tensor(860.0), 100, 61, 86)
+    assert bpv == pytest.approx(38 / (2 * 61))
+    assert float(rate) == pytest.approx(38 / (2 * 61) * 0.75 + 860 / (100 * 86))
 
 
 @pytest.fixture(scope="module")
@@ -159,6 +163,35 @@ def test_mask_anchor_rate_is_the_valid_share_of_visible_anchors(scene, tmp_path)
     # the trainer's rate uses it: its logged share and the loss with lambda set
     terms = t.step(1)
     assert 0 < terms["valid_share"] < 1
+
+
+def test_hash_bits_denominator_is_its_own_option(scene, tmp_path):
+    """entropy.hash_values_per_anchor = H divides the hash bits (context grid and a provider's
+    grid) by N * H in the mask trainings' rate, the sampled bits still by N * V; 0 = V. The
+    option keeps the hash of configs without it, and the Predict-GS patch hash-rate-hac sets
+    HAC's 86 where Predict-GS codes 61 values per anchor."""
+    from baseline.config import config_hash
+
+    sets = ("entropy.noise_from=0", "entropy.context_from=0", "entropy.rate_sample=1.0")
+    res = types.SimpleNamespace(bits={"feat": torch.tensor([10.0, 20.0])}, n_rate_anchors=2,
+                                valid_share=0.5)
+    rates = {}
+    for h in (0, 43):
+        t = _trainer(scene, tmp_path / str(h), *sets, f"entropy.hash_values_per_anchor={h}")
+        assert t.rate_values_per_anchor == 86
+        assert t.hash_values_per_anchor == (h or 86)
+        hb = float(t.entropy.hash_bits().detach())
+        assert hb > 0
+        (lam_rate, _), _ = t.mask_training.loss(res)
+        rates[h] = float(lam_rate) / t.cfg.entropy.lmbda
+        sampled = 30.0 / (2 * 86) * 0.5
+        assert rates[h] == pytest.approx(sampled + hb / (t.model.n_anchors * (h or 86)),
+                                         rel=1e-5)
+    assert config_hash(demo_cfg(300)) == config_hash(demo_cfg(300, "entropy.hash_values_per_anchor=0"))
+    assert config_hash(demo_cfg(300)) != config_hash(demo_cfg(300, "entropy.hash_values_per_anchor=86"))
+    pgs = build_config(["predict-gs", "hash-rate-hac"], [])
+    assert pgs.entropy.hash_values_per_anchor == 86
+    assert config_hash(pgs) != config_hash(build_config(["predict-gs"], []))
 
 
 def test_grown_anchor_reads_context_features(scene, tmp_path):

@@ -73,6 +73,7 @@ LATER_KEYS = {("lr", "mask_schedule_scaled"): False,
               ("entropy", "mask_training"): "hac",
               ("lr", "channel_final"): 0.0005,
               ("entropy", "rate_values_per_anchor"): 0,
+              ("entropy", "hash_values_per_anchor"): 0,
               ("densify", "reference_skip_update"): False,
               ("entropy", "context"): "own",
               ("train", "positions"): "float"}

@@ -188,7 +188,7 @@ class EntropyConfig:
         "lmbda": (0, 1e9), "noise_from": (0, 1 << 31), "context_from": (0, 1 << 31),
         "mask_lambda": (0, 1e9), "mask_threshold": (1e-12, 1 - 1e-12), "rate_sample": (1e-12, 1),
         "context_hidden": (1, 4096), "position_bits": (1, 16),
-        "rate_values_per_anchor": (0, 1 << 20)}
+        "rate_values_per_anchor": (0, 1 << 20), "hash_values_per_anchor": (0, 1 << 20)}
     model: str = "hac"                   # registry kind entropy_model: hac | factorized
     lmbda: float = 0.004                 # 0.004 low rate, 0.0005 high rate
     noise_from: int = 3000
@@ -208,6 +208,12 @@ class EntropyConfig:
     # lambda only moves a method along its own curve: compare methods by BD-rate, never at
     # equal lambda.
     rate_values_per_anchor: int = 0
+    # The hash bits' denominator alone: hash bits / (N * H). 0 = the V above. HAC's code divides
+    # them by its feature's 50 + scaling 6 + offsets 3K (86 at K = 10) whatever the coded
+    # attributes are, so a method that codes fewer values per anchor (a residual in place of the
+    # feature) but keeps HAC's 50-dim decoder input would weigh its tables' bits as HAC does
+    # with H = 86, while V gives them the weight of its own coded values.
+    hash_values_per_anchor: int = 0
     # Where a hash-grid entropy model ("hac", "hacpp") reads its positional context: "own" (a grid
     # of its own, trained by the rate, stored in the file) or "provider" (the feature
     # provider's grid, e.g. a Spatial Feature Pool, read with its gradient stopped: the context

@@ -69,9 +69,9 @@ def lr_exp(step: int, total: int, lr0: float, lr1: float) -> float:
 
 
 def rate_term(bits: dict, n_sampled: int, valid_share: float, hash_bits, n_anchors: int,
-              values_per_anchor: int):
+              values_per_anchor: int, hash_values_per_anchor: int = 0):
     """HAC's rate term (``train.py`` / ``generate_neural_gaussians``), multiplied by lambda by
-    the caller: ``sum(sampled bits) / (n_sampled * V) * valid_share + hash_bits / (N * V)``.
+    the caller: ``sum(sampled bits) / (n_sampled * V) * valid_share + hash_bits / (N * H)``.
 
     Args:
         bits: attribute -> [S] per-anchor bits of the S sampled anchors (masked offsets already
@@ -83,6 +83,7 @@ def rate_term(bits: dict, n_sampled: int, valid_share: float, hash_bits, n_ancho
         n_anchors: N, all anchors.
         values_per_anchor: V, the coded values per anchor the bits are normalised by (HAC: feat
             50 + scaling 6 + offsets 30 = 86).
+        hash_values_per_anchor: H (0: V).
     Returns:
         ``(rate, sampled_bits_per_value)``: the term (tensor, or 0.0 when empty) and the sampled
         part before the ``valid_share`` factor (a float for the log; None without a sample).
@@ -93,5 +94,6 @@ def rate_term(bits: dict, n_sampled: int, valid_share: float, hash_bits, n_ancho
         bpv = float(per_value.detach())
         rate = per_value * valid_share
     if torch.is_tensor(hash_bits):
-        rate = rate + hash_bits / (max(n_anchors, 1) * values_per_anchor)
+        h = hash_values_per_anchor if hash_values_per_anchor > 0 else values_per_anchor
+        rate = rate + hash_bits / (max(n_anchors, 1) * h)
     return rate, bpv

@@ -49,7 +49,8 @@ class HACMaskTraining(MaskTraining):
     def loss(self, res):
         t, cfg = self.t, self.t.cfg
         rate, bpv = rate_term(res.bits, res.n_rate_anchors, res.valid_share, self._hash_bits(),
-                              t.model.n_anchors, t.rate_values_per_anchor)
+                              t.model.n_anchors, t.rate_values_per_anchor,
+                              t.hash_values_per_anchor)
         terms = {}
         if bpv is not None:
             terms["bpp"] = bpv
@@ -99,7 +100,7 @@ class HACPPMaskTraining(HACMaskTraining):
             terms["valid_share"] = float((share > 0).float().mean())
         hb = self._hash_bits()
         if torch.is_tensor(hb):
-            rate = rate + hb / (max(n, 1) * t.rate_values_per_anchor)
+            rate = rate + hb / (max(n, 1) * t.hash_values_per_anchor)
         return [cfg.entropy.lmbda * rate], terms
 
 

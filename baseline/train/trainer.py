@@ -276,6 +276,13 @@ class Trainer:
         v = self.cfg.entropy.rate_values_per_anchor
         return v if v > 0 else sum(a.dims for a in self.model.coded_attributes())
 
+    @property
+    def hash_values_per_anchor(self) -> int:
+        """The hash bits' per-value denominator (``entropy.hash_values_per_anchor``; 0: the
+        rate's, :attr:`rate_values_per_anchor`)."""
+        v = self.cfg.entropy.hash_values_per_anchor
+        return v if v > 0 else self.rate_values_per_anchor
+
     def update_lr(self, it: int) -> None:
         total = self.cfg.train.iterations
         for g in self.optimizer.param_groups:
