@@ -22,14 +22,15 @@ class PredictConfig:
     LATER_KEYS: ClassVar[dict] = {"fusion_init": "zero", "grid_init": "random", "box": "extent",
                                   "box_quantile": 0.01, "residual_grow": "zero",
                                   "corrections": "pre", "mgrd_lr": "own",
-                                  "residual_noise": "always"}
+                                  "residual_noise": "always", "mgrd_init": "zero"}
     # options only the SFP reads: left out of the hash of a config without it
     COMPONENT_KEYS: ClassVar[dict] = {"fusion_init": ("feature_provider", "sfp"),
                                       "grid_init": ("feature_provider", "sfp"),
                                       "residual_grow": ("feature_provider", "sfp"),
                                       "corrections": ("refiner", "mgrd"),
                                       "mgrd_lr": ("refiner", "mgrd"),
-                                      "residual_noise": ("feature_provider", "sfp")}
+                                      "residual_noise": ("feature_provider", "sfp"),
+                                      "mgrd_init": ("refiner", "mgrd")}
 
     # Spatial Feature Pool (its own binary hash grid, HAC layout) + two-layer fusion MLP -> 50.
     fusion_hidden: int = 64            # choose: the paper gives two layers and the 50-dim output only
@@ -65,6 +66,11 @@ class PredictConfig:
     # "rate" = left exact until the rate starts (its adaptive quantization then reaches it)
     residual_noise: str = "always"
     mgrd_hidden: int = 64              # choose: hidden width of each MGRD head
+    # the MGRD heads' output layers at the start (the paper is silent): "zero" = no correction
+    # until they have trained, so switching stage 2 on leaves the stage-1 prediction exactly as
+    # it was; "default" = PyTorch's initialisation, what HAC-based code gives a new layer (a
+    # random correction of the view direction and distance from stage 2's first step)
+    mgrd_init: str = "zero"
     # where MGRD's corrections enter (eq. 5 adds them to the coarse Gaussians' attributes):
     # "pre" = before every activation (refined opacity tanh(raw + d), colour sigmoid(raw + d),
     # scale and rotation from raw cov + d: a zero correction changes nothing and every refined

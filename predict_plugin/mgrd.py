@@ -12,8 +12,8 @@ with no clamping; "post" adds opacity and colour corrections to the activated va
 + d_o and sigmoid(raw_c) + d_c (Scaffold-GS's opacity and colour MLPs end in their activations,
 so these are the attributes they output), and the shape corrections to the cov head's raw output
 as "pre" does. Either way a zero correction leaves the predicted Gaussians exactly unchanged. The
-heads' last layers start at zero, so switching the residual branch on (stage 2) does not disturb
-the prediction learned in stage 1.
+heads' last layers start at zero (``predict.mgrd_init``), so switching the residual branch on
+(stage 2) does not disturb the prediction learned in stage 1.
 """
 from __future__ import annotations
 
@@ -35,9 +35,12 @@ class MGRD(Refiner):
         h = p.mgrd_hidden
         self.shape_head = nn.Sequential(nn.Linear(d_in, h), nn.ReLU(), nn.Linear(h, 7 * K))
         self.appearance_head = nn.Sequential(nn.Linear(d_in, h), nn.ReLU(), nn.Linear(h, 4 * K))
-        for head in (self.shape_head, self.appearance_head):
-            nn.init.zeros_(head[2].weight)
-            nn.init.zeros_(head[2].bias)
+        if p.mgrd_init not in ("zero", "default"):
+            raise ValueError(f"predict.mgrd_init must be 'zero' or 'default', got '{p.mgrd_init}'")
+        if p.mgrd_init == "zero":
+            for head in (self.shape_head, self.appearance_head):
+                nn.init.zeros_(head[2].weight)
+                nn.init.zeros_(head[2].bias)
         self.active = False        # stage 1: residual branch off (set by the predict_stages hooks)
         if p.corrections not in ("pre", "post"):
             raise ValueError(f"predict.corrections must be 'pre' or 'post', got '{p.corrections}'")

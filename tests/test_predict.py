@@ -169,6 +169,32 @@ def test_corrections_option_keeps_the_hash_of_configs_without_it():
         _pgs_cfg("predict.corrections=post"))
 
 
+def test_mgrd_init_option_starts_the_output_layers_at_zero_or_at_pytorch_init():
+    """predict.mgrd_init: "zero" (default) gives a zero correction for any input, so stage 2's
+    first step leaves the prediction unchanged; "default" (patch mgrd-init-default) PyTorch's
+    random init, a correction that varies with the view; the default keeps the config hash; a
+    bad value is refused."""
+    from baseline.config import config_hash
+
+    x = {"residual": torch.zeros(5, 25)}
+    view, dist = torch.nn.functional.normalize(torch.randn(5, 3), dim=-1), torch.rand(5, 1)
+    zero = _pgs_model(_pgs_cfg("model.voxel_size=0.2")).refiner
+    with torch.no_grad():
+        out = zero(None, x, view, dist)
+    assert all(torch.count_nonzero(v) == 0 for v in out.values())
+    torch.manual_seed(0)
+    cfg = build_config(["predict-gs", "mgrd-init-default"], ["model.voxel_size=0.2"])
+    default = _pgs_model(cfg).refiner
+    with torch.no_grad():
+        out = default(None, x, view, dist)
+    assert all(float(v.abs().min()) > 0 for v in out.values())
+    assert not torch.allclose(out["cov"][0], out["cov"][1])       # depends on the view
+    assert config_hash(_pgs_cfg()) == config_hash(_pgs_cfg("predict.mgrd_init=zero"))
+    assert config_hash(cfg) != config_hash(build_config(["predict-gs"], ["model.voxel_size=0.2"]))
+    with pytest.raises(ValueError, match="predict.mgrd_init"):
+        _pgs_model(_pgs_cfg("model.voxel_size=0.2", "predict.mgrd_init=uniform"))
+
+
 def test_mgrd_lr_heads_gives_each_head_the_rate_of_the_head_it_corrects():
     """predict.mgrd_lr = "heads" (patch mgrd-lr-heads): the shape head at the cov head's
     schedule, the appearance head at the colour head's; "own" (default): one group at
