@@ -183,7 +183,7 @@ def test_hash_bits_denominator_is_its_own_option(scene, tmp_path):
         hb = float(t.entropy.hash_bits().detach())
         assert hb > 0
         (lam_rate, _), _ = t.mask_training.loss(res)
-        rates[h] = float(lam_rate) / t.cfg.entropy.lmbda
+        rates[h] = float(lam_rate.detach()) / t.cfg.entropy.lmbda
         sampled = 30.0 / (2 * 86) * 0.5
         assert rates[h] == pytest.approx(sampled + hb / (t.model.n_anchors * (h or 86)),
                                          rel=1e-5)
