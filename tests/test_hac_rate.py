@@ -187,6 +187,16 @@ def test_hash_bits_denominator_is_its_own_option(scene, tmp_path):
         sampled = 30.0 / (2 * 86) * 0.5
         assert rates[h] == pytest.approx(sampled + hb / (t.model.n_anchors * (h or 86)),
                                          rel=1e-5)
+    # HAC++'s mask training (its own rate sample, the same draw in both): only the hash part moves
+    hacpp = {}
+    for h in (0, 43):
+        t = _trainer(scene, tmp_path / f"pp{h}", *sets, "entropy.mask_training=hacpp",
+                     f"entropy.hash_values_per_anchor={h}")
+        hb = float(t.entropy.hash_bits().detach())
+        (lam_rate,), _ = t.mask_training.loss(None)
+        hacpp[h] = (float(lam_rate.detach()) / t.cfg.entropy.lmbda, hb, t.model.n_anchors)
+    (r0, hb, n), (r43, _, _) = hacpp[0], hacpp[43]
+    assert r43 - r0 == pytest.approx(hb / (n * 43) - hb / (n * 86), rel=1e-4)
     assert config_hash(demo_cfg(300)) == config_hash(demo_cfg(300, "entropy.hash_values_per_anchor=0"))
     assert config_hash(demo_cfg(300)) != config_hash(demo_cfg(300, "entropy.hash_values_per_anchor=86"))
     pgs = build_config(["predict-gs", "hash-rate-hac"], [])
