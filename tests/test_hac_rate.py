@@ -175,7 +175,6 @@ def test_hash_bits_denominator_is_its_own_option(scene, tmp_path):
     sets = ("entropy.noise_from=0", "entropy.context_from=0", "entropy.rate_sample=1.0")
     res = types.SimpleNamespace(bits={"feat": torch.tensor([10.0, 20.0])}, n_rate_anchors=2,
                                 valid_share=0.5)
-    rates = {}
     for h in (0, 43):
         t = _trainer(scene, tmp_path / str(h), *sets, f"entropy.hash_values_per_anchor={h}")
         assert t.rate_values_per_anchor == 86
@@ -183,10 +182,9 @@ def test_hash_bits_denominator_is_its_own_option(scene, tmp_path):
         hb = float(t.entropy.hash_bits().detach())
         assert hb > 0
         (lam_rate, _), _ = t.mask_training.loss(res)
-        rates[h] = float(lam_rate.detach()) / t.cfg.entropy.lmbda
+        rate = float(lam_rate.detach()) / t.cfg.entropy.lmbda
         sampled = 30.0 / (2 * 86) * 0.5
-        assert rates[h] == pytest.approx(sampled + hb / (t.model.n_anchors * (h or 86)),
-                                         rel=1e-5)
+        assert rate == pytest.approx(sampled + hb / (t.model.n_anchors * (h or 86)), rel=1e-5)
     # HAC++'s mask training (its own rate sample, the same draw in both): only the hash part moves
     hacpp = {}
     for h in (0, 43):
