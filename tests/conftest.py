@@ -58,7 +58,8 @@ def small_scene(tmp_path_factory):
 @pytest.fixture(scope="session")
 def decoded_files(tmp_path_factory):
     """A baseline and a Predict-GS run folder (``model.pgs``, checkpoint, ``scene.json``) of the
-    same small scene (short trainings, the demo preset), plus the baseline's model written without its scene and with a copy of it:
+    same small scene (short trainings, the demo preset), plus the baseline's model written
+    without its scene and with a copy of it:
     ``{"scene", "baseline", "predict-gs", "noscene", "elsewhere"}`` (run folders / files)."""
     d = tmp_path_factory.mktemp("fpsbench")
     make_scene(d / "scene", n_views=10, width=48, height=36, seed=5)
