@@ -138,8 +138,9 @@ def form_image_differences(contenders: Sequence[Contender], cameras, background:
         return [render_view(c.model, cam, background, phase="decoded",
                             backend=backend).render.image for cam in cams]
 
-    for s in range(0, len(cameras), max(chunk, 1)):
-        cams = cameras[s:s + max(chunk, 1)]
+    step = max(chunk, 1)
+    for s in range(0, len(cameras), step):
+        cams = cameras[s:s + step]
         for mi, ids in others.items():
             if not ids:
                 continue
