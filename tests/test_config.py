@@ -298,16 +298,17 @@ def test_config_list_groups_the_patches_by_kind(capsys):
             assert patch_infos()[line.split()[0]].kind == kind
 
 
-def _archived_runs_are_planned(tmp_path, example, methods, lambdas, first=None) -> set:
+def _archived_runs_are_planned(tmp_path, example, methods, lambdas, first=None,
+                               resolution=4) -> set:
     """Assert that docs/examples/<example>/runs holds runs (of method ``first`` among them, if
-    given) and only runs that today's truck command plans (`-r 4 --patch cpu`, seeds 0 and 1,
-    same config hashes); returns the planned run folders' names."""
+    given) and only runs that today's truck command plans (`-r RESOLUTION --patch cpu`, seeds 0
+    and 1, same config hashes); returns the planned run folders' names."""
     from baseline.experiment import plan_runs
 
     runs = Path(__file__).parent.parent / "docs/examples" / example / "runs"
     archived = {p.name for p in runs.iterdir()}
     planned = {s.dir.name for s in plan_runs(tmp_path, methods, lambdas, ["cpu"],
-                                             ["data.resolution=4"], [0, 1])}
+                                             [f"data.resolution={resolution}"], [0, 1])}
     assert archived, example
     assert first is None or any(n.startswith(first + "-") for n in archived), sorted(archived)
     assert archived <= planned, sorted(archived - planned)
@@ -328,6 +329,20 @@ def test_truck_semantics3_records_are_what_their_command_plans_today(tmp_path):
                                 ["Predict-GS", "0.004", "0.002", "0.001"]], ["cpu"])
     planned = _archived_runs_are_planned(tmp_path, "truck-pos", methods, [0.004])
     assert len(planned) == 12, planned
+
+
+def test_truck_r2_records_are_what_their_command_plans_today(tmp_path):
+    """docs/examples/truck-r2 holds the `-r 2` pair of HAC and Predict-GS (490 x 272 views, the
+    rest of the protocol as truck-pos's): each must be a run that `pgs compare
+    ../shared/data/tandt_truck -r 2 --patch cpu --vs predict-gs --seeds 0 1 --lambda 0.008 0.004
+    0.002 0.001` plans today (same config hash), and both methods are there."""
+    from baseline.experiment import parse_methods
+
+    _archived_runs_are_planned(tmp_path, "truck-r2", parse_methods(["predict-gs"]),
+                               [0.008, 0.004, 0.002, 0.001], first="predict-gs", resolution=2)
+    archived = {p.name for p in (Path(__file__).parent.parent
+                                 / "docs/examples/truck-r2/runs").iterdir()}
+    assert any(n.startswith("baseline-") for n in archived), sorted(archived)
 
 
 @pytest.mark.parametrize("example, methods", [
