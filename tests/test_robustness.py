@@ -52,6 +52,21 @@ def test_check_output_accepts_new_empty_and_own_outputs_only(tmp_path):
     assert f.read_text() == "mine" and (user / "results.json").read_text() == "{}"
 
 
+def test_check_output_while_another_command_marks_the_same_new_folder(tmp_path):
+    """Two commands started at once into one new folder (``pgs compare --only``, one per
+    core): the second sees the first's marker half-written (its atomic temporary file) and
+    still finds the folder empty; a file named like it but not one is the user's."""
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "..pgs-output.1d4d0c35.tmp").write_text("{")
+    assert check_output(out, command="compare", source="scene", folder=True) is True
+    for name in ("..pgs-output.notahex!.tmp", ".pgs-output.1d4d0c35.tmp", "..pgs-output.1d4d.tmp"):
+        (out / name).write_text("x")
+        with pytest.raises(OutputError, match="holds files pgs did not write"):
+            check_output(out, command="compare", source="scene", folder=True)
+        (out / name).unlink()
+
+
 def test_check_output_for_runs_and_scenes(tmp_path, small_scene):
     run = tmp_path / "run"
     run.mkdir()
