@@ -251,6 +251,10 @@ def test_small_things_a_new_user_meets(tmp_path, capsys):
         with pytest.raises(SystemExit) as e:
             main(["make-scene", str(tmp_path / "s"), *bad])
         assert e.value.code == 2 and "must be at least 1" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as e:
+        main(["compare", str(empty), "--out", str(tmp_path / "c"), "--jobs", "0"])
+    assert e.value.code == 2 and "--jobs: 0 must be at least 1" in capsys.readouterr().err
+    assert not (tmp_path / "c").exists()
     run_sh = Path(__file__).parent.parent / "run.sh"
     p = subprocess.run(["bash", str(run_sh)], capture_output=True, text=True)
     assert p.returncode == 2 and "usage: ./run.sh demo" in p.stderr

@@ -494,3 +494,24 @@ def test_codec_patch_reencodes_without_retraining(scene, tmp_path):
     with pytest.raises(ValueError, match="kept only as records"):
         run_compare(scene, arch, vs=["predict-gs"], codec="compact-codec", **kw)
     assert {p: p.read_bytes() for p in arch.rglob("compare.json")} == before
+
+
+def test_jobs_trains_in_workers_and_reports_what_one_process_reports(scene, tmp_path, capsys):
+    """--jobs 2: the runs to do train in two pinned worker processes (the codec patch goes
+    with them), then the report is the one process's: every run finished once, the same bytes
+    and PSNR as a comparison run in one process, nothing measured twice."""
+    kw = dict(vs=["entropy-factorized"], common_patches=["demo"], sets=SETS, progress=False,
+              plots=False, codec="compact-codec", seeds=[0])
+    one = run_compare(scene, tmp_path / "one", echo=False, **kw)
+    par = run_compare(scene, tmp_path / "par", jobs=2, **kw)
+    said = capsys.readouterr().out
+    assert "2 run(s) to do on 2 worker(s)" in said and said.count("finished: ") == 2
+    key = lambda r: (r["method"], r["lmbda"], r["seed"])            # noqa: E731
+    a, b = sorted(one["runs"], key=key), sorted(par["runs"], key=key)
+    assert [key(r) for r in a] == [key(r) for r in b] and len(b) == 2
+    for x, y in zip(a, b):
+        assert (y["bytes"], y["psnr"], y["ssim"]) == (x["bytes"], x["psnr"], x["ssim"])
+        assert y["codec"]["positions"] == "sorted" and y["stages_run"] == []
+        assert Path(y["run_dir"]).parent == tmp_path / "par" / "runs"
+    again = run_compare(scene, tmp_path / "par", jobs=2, echo=False, **kw)
+    assert all(r["stages_run"] == [] for r in again["runs"])   # nothing left to do: no workers

@@ -5,7 +5,8 @@ import sys
 import time
 from pathlib import Path
 
-from baseline.cli.common import _config_args, _config_sets, LPIPS_HELP, _lpips_weights, SCENE_HELP
+from baseline.cli.common import (_config_args, _config_sets, LPIPS_HELP, _lpips_weights,
+                                 _positive_int, SCENE_HELP)
 
 
 def cmd_bench(args) -> int:
@@ -71,7 +72,7 @@ def cmd_compare(args) -> int:
                               codec=args.codec, seeds=args.seeds,
                               panel_views=args.panel_views, paired_fps=args.paired_fps,
                               lambda_for=args.lambda_for, untimed=args.untimed,
-                              overwrite=args.overwrite)
+                              overwrite=args.overwrite, jobs=args.jobs)
     except KeyboardInterrupt:
         print(f"\ninterrupted: finished stages are kept in {args.out}; run the same command "
               f"again to resume", file=sys.stderr)
@@ -300,6 +301,10 @@ def add_parsers(sub) -> None:
                         "included) and list the missing ones")
     p.add_argument("--remeasure", action="store_true",
                    help="redo encode and decode+eval of trained runs (retake times and FPS)")
+    p.add_argument("--jobs", type=_positive_int, default=1, metavar="N",
+                   help="runs trained at a time, each in its own process pinned to its share "
+                        "of the cores (2 on a 2-core machine: one run per core, one thread "
+                        "each); the report follows when all are done")
     p.add_argument("--reference", metavar="P1[+P2...]", default=None,
                    help="an uncompressed run on the same protocol to measure every run against "
                         "(e.g. 'scaffold'): PSNR change and 'x smaller' than its float32 model; "

@@ -44,6 +44,7 @@ class Job:
     lpips_weights: Optional[str] = None
     label: str = ""
     reference: bool = False         # the comparison's uncompressed reference run (--reference)
+    codec: Optional[str] = None     # a patch of [codec] settings for the encode stage (--codec)
 
 
 def job_spec(job: Job):
@@ -64,7 +65,7 @@ def run_job(job: Job, threads: int = 0) -> dict:
     if threads > 0:                      # before the trainer starts its thread pools
         os.environ["OMP_NUM_THREADS"] = str(threads)
     from baseline import registry as reg
-    from baseline.experiment.records import lpips_id
+    from baseline.experiment.records import codec_overrides, lpips_id
     from baseline.experiment.stages import run_one
     from baseline.eval.metrics import load_lpips
 
@@ -83,7 +84,7 @@ def run_job(job: Job, threads: int = 0) -> dict:
                 "pid": os.getpid()}
     lpips_fn, _ = load_lpips(job.lpips_weights)
     row = run_one(spec, job.scene, lpips_fn, lpips_id(job.lpips_weights) if lpips_fn else None,
-                  progress=False)
+                  progress=False, codec=codec_overrides(job.codec))
     return {"label": job.label or spec.label, "run_dir": str(spec.dir), "psnr": row["psnr"],
             "bytes": row["bytes"], "stages_run": row["stages_run"], "pid": os.getpid()}
 

@@ -87,6 +87,43 @@ def _stages_text(stages: list[str]) -> str:
     return "measured now: " + ", ".join(stages) if stages else "reused (finished earlier)"
 
 
+def _train_in_workers(specs: list[RunSpec], ref_spec: Optional[RunSpec], scene_path: str,
+                      out: Path, common_patches: list[str], sets: list[str],
+                      lpips_weights: Optional[str], codec: Optional[str], jobs: int,
+                      progress: bool, echo: bool) -> dict:
+    """Bring ``specs`` (and ``ref_spec``) to the finished state on ``jobs`` worker processes;
+    ``{run folder (resolved): [stages run]}``. Raises with every failed run's error."""
+    from baseline.experiment.executors import Job, LocalExecutor
+    from baseline.train.trainer import available_cores
+
+    work = [Job(scene=scene_path, out=str(out.resolve()), method=s.method.name,
+                method_patches=tuple(s.method.patches), lmbda=s.lmbda, seed=s.seed,
+                common_patches=tuple(common_patches), sets=tuple(sets), label=s.label,
+                lpips_weights=lpips_weights, codec=codec) for s in specs]
+    if ref_spec is not None:
+        work.append(Job(scene=scene_path, out=str(out.resolve()), method=ref_spec.method.name,
+                        method_patches=tuple(ref_spec.method.patches), lmbda=None, seed=None,
+                        common_patches=tuple(common_patches), sets=tuple(sets),
+                        label=f"{REFERENCE} {ref_spec.method.name}", reference=True))
+    if not work:
+        return {}
+    n = max(1, min(jobs, available_cores(), len(work)))
+    if echo:
+        print(f"compare: {len(work)} run(s) to do on {n} worker(s), one per core share: "
+              + ", ".join(j.label for j in work))
+
+    def said(row):
+        if echo:
+            tqdm.write(f"finished: {row['label']} ({row['run_dir']})")
+
+    res = LocalExecutor(jobs=n, progress=progress).execute(work, on_done=said)
+    if res["failed"]:
+        raise RuntimeError(f"{len(res['failed'])} run(s) failed (the finished ones are kept; "
+                           f"run the same command again to resume): "
+                           + "; ".join(f"{label}: {err}" for label, err in res["failed"]))
+    return {str(Path(r["run_dir"]).resolve()): list(r["stages_run"]) for r in res["done"]}
+
+
 def run_compare(scene: str | Path, out: str | Path, vs: list[str] = (),
                 lambdas: Optional[list[float]] = None, common_patches: list[str] = (),
                 sets: list[str] = (), lpips_weights: Optional[str] = None,
@@ -97,7 +134,7 @@ def run_compare(scene: str | Path, out: str | Path, vs: list[str] = (),
                 panel_views: Optional[list[int]] = None, paired_fps: bool = False,
                 scope: Optional[str] = None, lambda_for: Optional[list[list]] = None,
                 untimed: Optional[list[list[str]]] = None, overwrite: bool = False,
-                done_before: dict | None = None) -> dict:
+                done_before: dict | None = None, jobs: int = 1) -> dict:
     """Run (or resume) a comparison; write ``out/results.json``, ``out/report.md`` and plots.
 
     ``only``: bring only the runs of these methods (``baseline``, a ``--vs`` value, or a name as
@@ -127,6 +164,11 @@ def run_compare(scene: str | Path, out: str | Path, vs: list[str] = (),
     this scene's comparison: :func:`baseline.guard.check_output`).
     ``done_before``: ``{run folder: [stages]}`` this command already ran elsewhere (``pgs demo``'s
     parallel workers), so that its messages say those runs were trained now, not reused.
+    ``jobs``: runs trained at a time, each in a process of its own pinned to its share of the
+    cores (:class:`~baseline.experiment.executors.LocalExecutor`, as ``pgs demo`` runs them): the runs still to
+    do (and the reference, when it is to be trained) go to those workers first, then this
+    process reports every run as it does after ``--only`` runs in parallel. A run that fails
+    there stops the comparison with its error, the finished runs kept.
     ``lpips_weights`` None: the weight files found on this machine, if any
     (:func:`baseline.eval.metrics.find_lpips_weights`).
 
@@ -244,6 +286,17 @@ def run_compare(scene: str | Path, out: str | Path, vs: list[str] = (),
     if n_done < len(specs) or ref_todo:
         _warm_up_rasterizer(specs + ([ref_spec] if ref_todo else []))
     t0 = time.perf_counter()
+    if jobs > 1 and not report_only:
+        todo = [s for s, f in zip(specs, finished) if not f]
+        done = _train_in_workers(todo, ref_spec if ref_todo else None, scene_path, out,
+                                 list(common_patches), list(sets), lpips_weights, codec, jobs,
+                                 progress, echo)
+        for k, v in done.items():
+            earlier[k] = earlier.get(k, []) + v
+        # measured by the workers just now: not measured a second time
+        trained_here = set(done)
+    else:
+        trained_here = set()
     if ref_done or ref_todo:
         head = f"[{REFERENCE}] {ref_method.name} (uncompressed)"
         row = run_reference(ref_spec, scene_path, progress=progress,
@@ -266,7 +319,8 @@ def run_compare(scene: str | Path, out: str | Path, vs: list[str] = (),
                 tqdm.write(f"{head}: {s} ({spec.dir})")
 
         row = run_one(spec, scene_path, lpips_fn, lp_id, progress=progress, on_stage=on_stage,
-                      remeasure=remeasure, codec=codec_over)
+                      remeasure=remeasure and str(spec.dir.resolve()) not in trained_here,
+                      codec=codec_over)
         results["runs"].append(row)
         write_json_atomic(out / "results.json", results)       # partial results survive
         if echo:
