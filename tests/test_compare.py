@@ -505,7 +505,10 @@ def test_jobs_trains_in_workers_and_reports_what_one_process_reports(scene, tmp_
     one = run_compare(scene, tmp_path / "one", echo=False, **kw)
     par = run_compare(scene, tmp_path / "par", jobs=2, **kw)
     said = capsys.readouterr().out
-    assert "2 run(s) to do on 2 worker(s)" in said and said.count("finished: ") == 2
+    from baseline.train.trainer import available_cores
+
+    n = min(2, available_cores())                          # one worker per core at most
+    assert f"2 run(s) to do on {n} worker(s)" in said and said.count("finished: ") == 2
     key = lambda r: (r["method"], r["lmbda"], r["seed"])            # noqa: E731
     a, b = sorted(one["runs"], key=key), sorted(par["runs"], key=key)
     assert [key(r) for r in a] == [key(r) for r in b] and len(b) == 2
