@@ -165,10 +165,10 @@ def run_compare(scene: str | Path, out: str | Path, vs: list[str] = (),
     ``done_before``: ``{run folder: [stages]}`` this command already ran elsewhere (``pgs demo``'s
     parallel workers), so that its messages say those runs were trained now, not reused.
     ``jobs``: runs trained at a time, each in a process of its own pinned to its share of the
-    cores (:class:`~baseline.experiment.executors.LocalExecutor`, as ``pgs demo`` runs them): the runs still to
-    do (and the reference, when it is to be trained) go to those workers first, then this
-    process reports every run as it does after ``--only`` runs in parallel. A run that fails
-    there stops the comparison with its error, the finished runs kept.
+    cores (:class:`~baseline.experiment.executors.LocalExecutor`, as ``pgs demo`` runs them):
+    the runs still to do (and the reference, when it is to be trained) go to those workers
+    first, then this process reports every run as it does after ``--only`` runs in parallel.
+    A run that fails there stops the comparison with its error, the finished runs kept.
     ``lpips_weights`` None: the weight files found on this machine, if any
     (:func:`baseline.eval.metrics.find_lpips_weights`).
 
