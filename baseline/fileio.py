@@ -59,6 +59,24 @@ def _fsync_dir(folder: Path) -> None:
         os.close(fd)
 
 
+_TOKEN_HEX = 8      # the random part of a temporary name: 4 bytes as hex
+
+
+def _temporary_name(path: Path) -> str:
+    return f".{path.stem}.{secrets.token_hex(_TOKEN_HEX // 2)}.tmp{path.suffix}"
+
+
+def is_temporary_of(name: str, target: str) -> bool:
+    """Whether the folder entry ``name`` is a temporary file that :func:`atomic_path` writes
+    for a file named ``target`` (another process's write in flight, or one a killed process
+    left behind)."""
+    t = Path(target)
+    head, tail = f".{t.stem}.", f".tmp{t.suffix}"
+    token = name[len(head):len(name) - len(tail)]
+    return (name.startswith(head) and name.endswith(tail) and len(token) == _TOKEN_HEX
+            and all(c in "0123456789abcdef" for c in token))
+
+
 @contextmanager
 def atomic_path(path: PathLike, *, fsync: bool = True) -> Iterator[Path]:
     """Yield a temporary path beside ``path``; when the block ends cleanly, move it onto ``path``.
@@ -71,7 +89,7 @@ def atomic_path(path: PathLike, *, fsync: bool = True) -> Iterator[Path]:
     path = Path(path)
     folder = path.parent
     folder.mkdir(parents=True, exist_ok=True)
-    tmp = folder / f".{path.stem}.{secrets.token_hex(4)}.tmp{path.suffix}"
+    tmp = folder / _temporary_name(path)
     try:
         yield tmp
         if not tmp.is_file():

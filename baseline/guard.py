@@ -247,22 +247,14 @@ def write_marker(folder, command: str, source: Source = None) -> None:
                       json.dumps({"command": command, "input": _source_key(source)}, indent=1))
 
 
-def _marker_in_flight(name: str) -> bool:
-    """A marker another process is writing right now: :func:`write_marker` writes through
-    :func:`baseline.fileio.write_text_atomic`, whose temporary file is
-    ``.<name>.<8 hex>.tmp`` beside it (two commands started at once into one new folder, one
-    per core, each see the other's)."""
-    head, _, tail = name.rpartition(".tmp")
-    stem, _, token = head.rpartition(".")
-    return (tail == "" and stem == f".{MARKER_NAME}" and len(token) == 8
-            and all(c in "0123456789abcdef" for c in token))
-
-
 def folder_entries(folder) -> list[str]:
-    """The entries of ``folder`` other than the toolkit's lock and marker files (a marker being
-    written by another process included)."""
+    """The entries of ``folder`` other than the toolkit's lock and marker files, a marker
+    another process is writing included (two commands started at once into one new folder,
+    one per core, each see the other's temporary marker)."""
+    from baseline.fileio import is_temporary_of
+
     return sorted(x for x in os.listdir(folder)
-                  if x not in (LOCK_NAME, MARKER_NAME) and not _marker_in_flight(x))
+                  if x not in (LOCK_NAME, MARKER_NAME) and not is_temporary_of(x, MARKER_NAME))
 
 
 def check_output(path, *, command: str, source: Source = None, folder: bool = False,

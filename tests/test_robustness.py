@@ -56,9 +56,16 @@ def test_check_output_while_another_command_marks_the_same_new_folder(tmp_path):
     """Two commands started at once into one new folder (``pgs compare --only``, one per
     core): the second sees the first's marker half-written (its atomic temporary file) and
     still finds the folder empty; a file named like it but not one is the user's."""
+    from baseline.fileio import atomic_path
+    from baseline.guard import MARKER_NAME
+
     out = tmp_path / "out"
     out.mkdir()
-    (out / "..pgs-output.1d4d0c35.tmp").write_text("{")
+    with atomic_path(out / MARKER_NAME) as tmp:          # the other command's write, in flight
+        tmp.write_text("{")
+        assert check_output(out, command="compare", source="scene", folder=True) is True
+    (out / MARKER_NAME).unlink()
+    (out / "..pgs-output.1d4d0c35.tmp").write_text("{")  # the name that write uses
     assert check_output(out, command="compare", source="scene", folder=True) is True
     for name in ("..pgs-output.notahex!.tmp", ".pgs-output.1d4d0c35.tmp", "..pgs-output.1d4d.tmp"):
         (out / name).write_text("x")
