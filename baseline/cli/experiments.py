@@ -166,10 +166,11 @@ def cmd_demo(args) -> int:
     from baseline.experiment import (
         parse_methods,
         parse_reference,
+        plan_reference,
         plan_runs,
         run_compare,
     )
-    from baseline.experiment.executors import Job, LocalExecutor
+    from baseline.experiment.executors import LocalExecutor, jobs_of
     from baseline.guard import check_output, write_marker
     from baseline.train.trainer import available_cores
 
@@ -192,18 +193,11 @@ def cmd_demo(args) -> int:
     methods = parse_methods(vs)
     ref = None if args.reference == "none" else args.reference
     specs = plan_runs(out, methods, lambdas, common, args.set)
-    jobs = [Job(scene=str(scene.resolve()), out=str(out.resolve()), method=s.method.name,
-                method_patches=tuple(s.method.patches), lmbda=s.lmbda, seed=None,
-                common_patches=tuple(common), sets=tuple(args.set), label=s.label,
-                lpips_weights=lpips)
-            for s in specs]
-    jobs.sort(key=lambda j: j.method == "baseline")          # the longer trainings first
-    if ref is not None:
-        m = parse_reference(ref)
-        jobs.append(Job(scene=str(scene.resolve()), out=str(out.resolve()), method=m.name,
-                        method_patches=tuple(m.patches), lmbda=None, seed=None,
-                        common_patches=tuple(common), sets=tuple(args.set),
-                        label=f"reference {m.name}", reference=True))
+    ref_spec = (None if ref is None else
+                plan_reference(out, parse_reference(ref), common, list(args.set)))
+    jobs = jobs_of(specs, ref_spec, scene.resolve(), out, common, args.set, lpips_weights=lpips)
+    # the longer trainings first (the contenders', then HAC's), the reference last
+    jobs.sort(key=lambda j: (j.reference, j.method == "baseline"))
     n = max(1, min(available_cores(), len(jobs)))
     print(f"demo: {len(jobs)} run(s) on {n} core(s), one per core")
     try:

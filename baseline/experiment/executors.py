@@ -24,6 +24,7 @@ import os
 import sys
 import traceback
 from dataclasses import asdict, dataclass
+from pathlib import Path
 from typing import Callable, Optional
 
 from tqdm import tqdm
@@ -58,6 +59,24 @@ def job_spec(job: Job):
                       None if job.lmbda is None else [job.lmbda], list(job.common_patches),
                       list(job.sets), None if job.seed is None else [job.seed])
     return specs[0]
+
+
+def jobs_of(specs: list, ref_spec, scene: str, out, common_patches=(), sets=(),
+            lpips_weights: Optional[str] = None, codec: Optional[str] = None) -> list:
+    """The jobs of a comparison's planned runs (and of its uncompressed reference run, when
+    ``ref_spec`` is given), in the order given; :func:`job_spec` plans each back to its spec."""
+    common = dict(scene=str(scene), out=str(Path(out).resolve()),
+                  common_patches=tuple(common_patches), sets=tuple(sets))
+    jobs = [Job(method=s.method.name, method_patches=tuple(s.method.patches), lmbda=s.lmbda,
+                seed=s.seed, label=s.label, lpips_weights=lpips_weights, codec=codec, **common)
+            for s in specs]
+    if ref_spec is not None:
+        from baseline.experiment.plan import REFERENCE
+
+        jobs.append(Job(method=ref_spec.method.name, method_patches=tuple(ref_spec.method.patches),
+                        lmbda=None, seed=None, label=f"{REFERENCE} {ref_spec.method.name}",
+                        reference=True, **common))
+    return jobs
 
 
 def run_job(job: Job, threads: int = 0) -> dict:

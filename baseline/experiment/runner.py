@@ -93,18 +93,10 @@ def _train_in_workers(specs: list[RunSpec], ref_spec: Optional[RunSpec], scene_p
                       progress: bool, echo: bool) -> dict:
     """Bring ``specs`` (and ``ref_spec``) to the finished state on ``jobs`` worker processes;
     ``{run folder (resolved): [stages run]}``. Raises with every failed run's error."""
-    from baseline.experiment.executors import Job, LocalExecutor
+    from baseline.experiment.executors import LocalExecutor, jobs_of
     from baseline.train.trainer import available_cores
 
-    work = [Job(scene=scene_path, out=str(out.resolve()), method=s.method.name,
-                method_patches=tuple(s.method.patches), lmbda=s.lmbda, seed=s.seed,
-                common_patches=tuple(common_patches), sets=tuple(sets), label=s.label,
-                lpips_weights=lpips_weights, codec=codec) for s in specs]
-    if ref_spec is not None:
-        work.append(Job(scene=scene_path, out=str(out.resolve()), method=ref_spec.method.name,
-                        method_patches=tuple(ref_spec.method.patches), lmbda=None, seed=None,
-                        common_patches=tuple(common_patches), sets=tuple(sets),
-                        label=f"{REFERENCE} {ref_spec.method.name}", reference=True))
+    work = jobs_of(specs, ref_spec, scene_path, out, common_patches, sets, lpips_weights, codec)
     if not work:
         return {}
     n = max(1, min(jobs, available_cores(), len(work)))
