@@ -209,6 +209,11 @@ class TrainingHook(_Component):
         """After a checkpoint of iteration ``it`` is loaded: re-derive the module state the hook
         sets in :meth:`before_step` (a loaded run is rendered or encoded without a step)."""
 
+    def log_fields(self) -> dict[str, int | float]:
+        """Figures the hook adds to each line of the training log (``train_log.jsonl``), e.g.
+        counts since the start of training. Default: none."""
+        return {}
+
     @classmethod
     def stage_starts(cls, cfg) -> list[int]:
         """The iterations (of this run's schedule) after which the hook starts a new stage of

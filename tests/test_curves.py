@@ -152,3 +152,26 @@ def test_pgs_curves_at_span_ends_prints_growth_and_reads_an_archived_record(tmp_
     assert "no training log" in capsys.readouterr().err
     assert main(["curves", str(a), "--at", "20", "10"]) == 2
     assert "increasing" in capsys.readouterr().err
+
+
+def test_summarize_and_pgs_curves_split_the_anchor_count_into_grown_and_pruned(tmp_path, capsys):
+    from baseline.cli import main
+
+    log = _log(range(10, 61, 10))
+    for d in log:                       # running counts: 1,000 grown and 200 pruned per 10 its
+        d["grown"], d["pruned"] = 100 * d["it"], 20 * d["it"]
+    s = summarize(log, iterations=60, ends=[20, 60])
+    assert s["grown"] == [2000, 4000] and s["pruned"] == [400, 800]
+    assert summarize(_log(range(10, 61, 10)), iterations=60, windows=2)["grown"] == [None, None]
+    gap = summarize(log, iterations=90, windows=3)          # nothing logged in 61..90
+    assert gap["grown"] == [3000, 3000, None]
+    a = _run_dir(tmp_path / "a", range(10, 61, 10))
+    (a / "train_log.jsonl").write_text("".join(json.dumps(d) + "\n" for d in log))
+    b = _run_dir(tmp_path / "b", range(10, 61, 10))      # a log without the counts
+    assert main(["curves", str(a), str(b), "--at", "20", "60"]) == 0
+    table = capsys.readouterr().out.split("Growing and pruning")[1]
+    rows = {ln.split()[0]: ln.split()[1:] for ln in table.splitlines() if ln.startswith(("a ", "b "))}
+    assert rows["a"] == ["+2.0k", "/", "-0.4k", "+4.0k", "/", "-0.8k"]
+    assert rows["b"] == ["-", "-"]
+    assert main(["curves", str(b), "--at", "20", "60"]) == 0
+    assert "Growing and pruning" not in capsys.readouterr().out

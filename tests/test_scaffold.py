@@ -199,6 +199,13 @@ def test_pruning_and_scaling_clamp():
     assert torch.equal(model.per_anchor["feat"][0], marker)
     assert opt.state[model.per_anchor["feat"]]["exp_avg"].shape == (2, 50)
     assert hook.anchor_demon.tolist() == [0.0, 10.0]     # counted anchors reset, others kept
+    assert hook.log_fields() == {"grown": 0, "pruned": 1}
+    again = ScaffoldDensify(trainer)                      # the counts go with the checkpoint
+    again.load_state_dict(hook.state_dict())
+    assert again.log_fields() == {"grown": 0, "pruned": 1}
+    old = {k: v for k, v in hook.state_dict().items() if k not in ("grown", "pruned")}
+    again.load_state_dict(old)                            # a checkpoint without them: from 0
+    assert again.log_fields() == {"grown": 0, "pruned": 0}
     assert (model.per_anchor["scaling"][:, 3:] <= 0.05 + 1e-7).all()
     assert interval == max(10, cfg.train.at(cfg.densify.update_interval))
 

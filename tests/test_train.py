@@ -60,6 +60,12 @@ def test_train_log_is_one_curve_across_a_resume(scene_dir, tmp_path):
     assert all(np.isfinite(r["loss"]) and r["anchors"] > 0 and r["gaussians"] > 0 for r in rows)
     t = [r["train_time"] for r in rows]
     assert t == sorted(t) and t[0] > 0
+    # the growing hook's running counts, carried across the resume: every line's anchors are
+    # the initial ones plus those grown minus those pruned so far
+    assert {r["anchors"] - r["grown"] + r["pruned"] for r in rows} == {a.model.n_anchors
+                                                                       - a.hooks[0].grown
+                                                                       + a.hooks[0].pruned}
+    assert rows[-1]["grown"] > 0 and rows[-1]["grown"] >= rows[3]["grown"]
 
 
 def test_a_resume_at_another_thread_count_keeps_both_counts(scene_dir, tmp_path):

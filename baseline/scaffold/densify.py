@@ -137,7 +137,10 @@ class ScaffoldDensify(TrainingHook):
         self.grow_count = self.interval * d.success_threshold * 0.5
         self.prune_count = self.interval * d.success_threshold
         self.reset(trainer.model.n_anchors, trainer.model.n_offsets)
-        self.log = {"grown": 0, "pruned": 0}
+        # anchors added and removed since the start of training (the log's "grown" / "pruned":
+        # what a net anchor count cannot tell apart)
+        self.grown = 0
+        self.pruned = 0
 
     def reset(self, N, K):
         dev = self.t.model.xyz.device
@@ -146,13 +149,22 @@ class ScaffoldDensify(TrainingHook):
         self.grad_accum = torch.zeros(N * K, device=dev)
         self.grad_denom = torch.zeros(N * K, device=dev)
 
+    _STATS = ("opacity_accum", "anchor_demon", "grad_accum", "grad_denom")
+    _COUNTS = ("grown", "pruned")
+
     def state_dict(self):
-        return {k: getattr(self, k) for k in ("opacity_accum", "anchor_demon", "grad_accum", "grad_denom")}
+        return ({k: getattr(self, k) for k in self._STATS}
+                | {k: torch.tensor(getattr(self, k)) for k in self._COUNTS})
 
     def load_state_dict(self, s):
         dev = self.t.model.xyz.device
-        for k, v in s.items():
-            setattr(self, k, v.to(dev, copy=True))
+        for k in self._STATS:
+            setattr(self, k, s[k].to(dev, copy=True))
+        for k in self._COUNTS:   # checkpoints written before the counts were kept: 0
+            setattr(self, k, int(s[k]) if k in s else 0)
+
+    def log_fields(self) -> dict[str, int | float]:
+        return {k: getattr(self, k) for k in self._COUNTS}
 
     # -------------------------------------------------------------------------------- hooks
     def after_backward(self, it: int, ctx) -> None:
@@ -248,8 +260,8 @@ class ScaffoldDensify(TrainingHook):
             self.grad_accum = self.grad_accum[keepk]
             self.grad_denom = self.grad_denom[keepk]
         self.clamp_scaling()
-        self.log["grown"] += added
-        self.log["pruned"] += n_pruned
+        self.grown += added
+        self.pruned += n_pruned
         t.on_anchors_changed(N0, model.n_anchors)
 
 

@@ -5,8 +5,9 @@ trainer's state, which is why they live in one class.
 
 Hooks are :class:`baseline.contracts.TrainingHook` objects built as ``cls(trainer)`` from
 registry kind ``hooks``: ``before_step(it)``, ``after_backward(it, ctx)``, ``after_step(it)``,
-``state_dict()`` / ``load_state_dict(s)`` (saved in checkpoints) and ``restore(it)`` (after a
-checkpoint of iteration ``it`` is loaded). They steer the trainer through ``trainer.phase``
+``state_dict()`` / ``load_state_dict(s)`` (saved in checkpoints), ``restore(it)`` (after a
+checkpoint of iteration ``it`` is loaded) and ``log_fields()`` (added to each line of the
+training log). They steer the trainer through ``trainer.phase``
 (quantization phase), ``trainer.render_scale`` (progressive resolution) and
 ``trainer.extra_losses`` (name -> callable(ctx) -> scalar).
 """
@@ -424,7 +425,9 @@ class Trainer:
                                           **({"stall_time": round(self.stall_time, 3)}
                                              if self.stall_time is not None else {}),
                                           "loss_ema": round(ema_loss, 6), **terms,
-                                          "anchors": self.model.n_anchors, "phase": self.phase},
+                                          "anchors": self.model.n_anchors, "phase": self.phase,
+                                          **{k: v for h in self.hooks
+                                             for k, v in h.log_fields().items()}},
                                          default=float) + "\n")
                     log.flush()
                     if tb is not None:

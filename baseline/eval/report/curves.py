@@ -3,7 +3,8 @@
 The training log (``train_log.jsonl``, one line every ``train.log_every`` iterations) is cut into
 ``windows`` equal spans of the schedule; each span keeps the mean training L1 of the sampled
 views, the mean sampled bits per coded value of the rate term (once it is on), the mean
-Gaussians drawn per training view and the anchors at the span's end. A comparison stores this
+Gaussians drawn per training view, the anchors at the span's end and the anchors grown and
+pruned in the span. A comparison stores this
 summary in each run's record (``compare.json``), so archived records keep it without the log.
 
 What the numbers are: L1 and bits are those of the sampled training view of each logged step,
@@ -68,7 +69,7 @@ def summarize(entries: list[dict], iterations: Optional[int] = None,
         total = int(iterations) if iterations else max(int(e["it"]) for e in entries)
         bounds = [round(total * k / windows) for k in range(windows + 1)]
     out = {"iterations": total, "bounds": bounds, "l1": [], "bits_per_value": [],
-           "gaussians": [], "anchors": []}
+           "gaussians": [], "anchors": [], "grown": [], "pruned": []}
     for lo, hi in zip(bounds[:-1], bounds[1:]):
         span = [e for e in entries if lo < int(e["it"]) <= hi]
         out["l1"].append(_mean([float(e["l1"]) for e in span if e.get("l1") is not None]))
@@ -76,7 +77,24 @@ def summarize(entries: list[dict], iterations: Optional[int] = None,
         out["gaussians"].append(_mean([float(e["gaussians"]) for e in span
                                        if e.get("gaussians") is not None]))
         out["anchors"].append(int(span[-1]["anchors"]) if span and "anchors" in span[-1] else None)
+        for key in ("grown", "pruned"):
+            out[key].append(_added_in(entries, key, lo, hi))
     return out
+
+
+def _added_in(entries: list[dict], key: str, lo: int, hi: int) -> Optional[int]:
+    """How much the log's running count ``key`` rose over iterations (lo, hi]: its value at the
+    span's last logged step minus its value at the last step logged at or before ``lo`` (0 at
+    the start); None where the log does not carry the count."""
+    def last(upto: int) -> Optional[int]:
+        xs = [e for e in entries if int(e["it"]) <= upto]
+        return int(xs[-1][key]) if xs and key in xs[-1] else None
+
+    end = last(hi)
+    if end is None or not any(lo < int(e["it"]) <= hi for e in entries):
+        return None
+    start = last(lo) if lo > 0 else 0
+    return None if start is None else end - start
 
 
 def train_curve(run_dir: str | Path, iterations: Optional[int] = None,
@@ -239,4 +257,20 @@ def format_curves(runs: list[str | Path], windows: int = WINDOWS,
                    ["Each span: the anchors at its last logged step / the mean neural Gaussians "
                     "drawn per sampled training view (a progressive schedule's early views are "
                     "downsampled)."]).text()
-    return l1 + "\n" + growth
+    text = l1 + "\n" + growth
+    if any(v is not None for c in curves for v in c.get("grown", [])):
+        text += "\n" + Table(
+            "Growing and pruning", ["run"] + span_headers(curves, prefix=""),
+            [[name] + [_change_cell(c, k) for k in range(len(c["anchors"]))]
+             for name, c, _ in items],
+            ["Each span: anchors grown / anchors pruned in it ('-' where the log does not count "
+             "them: logs written before the counts were kept)."]).text()
+    return text
+
+
+def _change_cell(c: dict, k: int) -> str:
+    """'+grown / -pruned' of span k in thousands ('-' where not counted)."""
+    g, p = (c.get(key, [None] * (k + 1))[k] for key in ("grown", "pruned"))
+    if g is None or p is None:
+        return "-"
+    return f"+{g / 1e3:.1f}k / -{p / 1e3:.1f}k"
