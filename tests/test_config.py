@@ -350,11 +350,12 @@ def test_truck_r2_records_are_what_their_command_plans_today(tmp_path):
     ("truck-hash", ["predict-gs+quant-ste+hash-rate-hac"]),
     ("truck-mgrdinit", ["predict-gs+quant-ste+mgrd-init-default"]),
     ("truck-fusion", ["predict-gs+quant-ste+fusion-default"]),
+    ("truck-fusion-xeon", ["predict-gs+quant-ste+fusion-default"]),
 ])
 def test_truck_lever_records_are_what_their_command_plans_today(tmp_path, example, methods):
-    """docs/examples/truck-ste, truck-sfpctx, truck-hash, truck-mgrdinit and truck-fusion hold
-    levers' runs at training semantics 3, trained by code that trains truck-pos's configs as
-    truck-pos's code does: each must be a run that `pgs compare ../shared/data/tandt_truck -r 4
+    """docs/examples/truck-ste, truck-sfpctx, truck-hash, truck-mgrdinit, truck-fusion and
+    truck-fusion-xeon hold levers' runs at training semantics 3, trained by code that trains
+    truck-pos's configs as truck-pos's code does: each must be a run that `pgs compare ../shared/data/tandt_truck -r 4
     --patch cpu --vs M [--vs M2] --seeds 0 1 --lambda 0.008 0.004 0.002 0.001` plans today
     (same config hash; HAC+quant-ste's curve starts at 0.008)."""
     from baseline.experiment import parse_methods
