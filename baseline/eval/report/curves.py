@@ -261,14 +261,14 @@ def format_curves(runs: list[str | Path], windows: int = WINDOWS,
     if any(v is not None for c in curves for v in c.get("grown", [])):
         text += "\n" + Table(
             "Growing and pruning", ["run"] + span_headers(curves, prefix=""),
-            [[name] + [_change_cell(c, k) for k in range(len(c["anchors"]))]
+            [[name] + [_grown_pruned_cell(c, k) for k in range(len(c["anchors"]))]
              for name, c, _ in items],
             ["Each span: anchors grown / anchors pruned in it ('-' where the log does not count "
              "them: logs written before the counts were kept)."]).text()
     return text
 
 
-def _change_cell(c: dict, k: int) -> str:
+def _grown_pruned_cell(c: dict, k: int) -> str:
     """'+grown / -pruned' of span k in thousands ('-' where not counted)."""
     g, p = (c.get(key, [None] * (k + 1))[k] for key in ("grown", "pruned"))
     if g is None or p is None:
