@@ -70,6 +70,7 @@ def summarize(entries: list[dict], iterations: Optional[int] = None,
         bounds = [round(total * k / windows) for k in range(windows + 1)]
     out = {"iterations": total, "bounds": bounds, "l1": [], "bits_per_value": [],
            "gaussians": [], "anchors": [], "grown": [], "pruned": []}
+    before: Optional[dict] = None          # the last entry logged at or before the span
     for lo, hi in zip(bounds[:-1], bounds[1:]):
         span = [e for e in entries if lo < int(e["it"]) <= hi]
         out["l1"].append(_mean([float(e["l1"]) for e in span if e.get("l1") is not None]))
@@ -78,23 +79,20 @@ def summarize(entries: list[dict], iterations: Optional[int] = None,
                                        if e.get("gaussians") is not None]))
         out["anchors"].append(int(span[-1]["anchors"]) if span and "anchors" in span[-1] else None)
         for key in ("grown", "pruned"):
-            out[key].append(_added_in(entries, key, lo, hi))
+            out[key].append(_added_in(span, before, key))
+        before = span[-1] if span else before
     return out
 
 
-def _added_in(entries: list[dict], key: str, lo: int, hi: int) -> Optional[int]:
-    """How much the log's running count ``key`` rose over iterations (lo, hi]: its value at the
-    span's last logged step minus its value at the last step logged at or before ``lo`` (0 at
-    the start); None where the log does not carry the count."""
-    def last(upto: int) -> Optional[int]:
-        xs = [e for e in entries if int(e["it"]) <= upto]
-        return int(xs[-1][key]) if xs and key in xs[-1] else None
-
-    end = last(hi)
-    if end is None or not any(lo < int(e["it"]) <= hi for e in entries):
+def _added_in(span: list[dict], before: Optional[dict], key: str) -> Optional[int]:
+    """How much the log's running count ``key`` rose over a span: its value at the span's last
+    entry minus its value at ``before``, the last entry logged before the span (0 without one);
+    None for an empty span or where the log does not carry the count."""
+    if not span or key not in span[-1]:
         return None
-    start = last(lo) if lo > 0 else 0
-    return None if start is None else end - start
+    if before is None:
+        return int(span[-1][key])
+    return int(span[-1][key]) - int(before[key]) if key in before else None
 
 
 def train_curve(run_dir: str | Path, iterations: Optional[int] = None,
